@@ -1,0 +1,1 @@
+"""The ``cusfm`` command line: argument parsing per subcommand, separate from ``run``."""

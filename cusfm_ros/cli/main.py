@@ -1,0 +1,52 @@
+"""Entry point of ``cusfm``: dispatches subcommands, turns ``CusfmError`` into one line + exit 1.
+
+Each subcommand module exposes ``add_parser(subparsers)`` (argument parsing) and
+``run(args) -> int`` (the work), so tests can call either half.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from cusfm_ros import __version__
+from cusfm_ros.cli import demo, evaluate
+from cusfm_ros.errors import CusfmError
+
+SUBCOMMANDS = (evaluate, demo)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cusfm",
+        description="Offline visual mapping, extrinsic refinement and localization "
+                    "from ROS 2 bags (cuSfM design).")
+    parser.add_argument("--version", action="version", version=f"cusfm {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in SUBCOMMANDS:
+        module.add_parser(subparsers)
+    return parser
+
+
+def configure_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S", stream=sys.stderr)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose)
+    try:
+        return int(args.run(args) or 0)
+    except CusfmError as exc:
+        print(f"cusfm {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""File and bag I/O. Every writer goes through ``atomic`` so no half-written output remains."""

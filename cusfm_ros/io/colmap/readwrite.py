@@ -1,0 +1,324 @@
+"""Read and write COLMAP sparse models as ``.txt`` or ``.bin`` (COLMAP's own layouts).
+
+Binary records follow COLMAP's ``reconstruction_io_binary``: little-endian, ``uint64`` counts,
+points3D ids as ``uint64`` with all-ones meaning "none" (read back as -1). Per-image keypoints
+and per-point tracks are packed with numpy structured arrays rather than per-element loops.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.errors import CusfmError, FormatError, GeometryError
+from cusfm_ros.io.atomic import atomic_directory
+from cusfm_ros.io.colmap.model import (COLMAP_MODEL_NAMES, COLMAP_MODELS, ColmapCamera,
+                                       ColmapImage, ColmapPoint3D, ColmapReconstruction)
+
+_POINT2D = np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
+_TRACK = np.dtype([("image_id", "<u4"), ("point2d_idx", "<u4")])
+FILE_NAMES = ("cameras", "images", "points3D")
+
+
+# --------------------------------------------------------------------------------- validation
+def _validate(model: ColmapReconstruction, files: dict[str, Path], lines: dict) -> None:
+    """Cross-reference checks: images name known cameras, tracks name known images."""
+    for image in model.images.values():
+        if image.camera_id not in model.cameras:
+            raise FormatError(files["images"], lines.get(("image", image.image_id)),
+                              f"image {image.image_id} ({image.name}) uses camera "
+                              f"{image.camera_id}, which is not in {files['cameras'].name}")
+    for point in model.points3d.values():
+        unknown = set(point.image_ids.tolist()) - model.images.keys()
+        if unknown:
+            raise FormatError(files["points3D"], lines.get(("point", point.point3d_id)),
+                              f"point {point.point3d_id} is observed in unknown image(s) "
+                              f"{sorted(unknown)}")
+
+
+def _pose(qvec: np.ndarray, tvec: np.ndarray, path: Path, where: str | None) -> Rigid3:
+    try:
+        return Rigid3.from_quat_wxyz(qvec, tvec)
+    except GeometryError as exc:
+        raise FormatError(path, where, str(exc)) from None
+
+
+# ----------------------------------------------------------------------------------- text
+def _data_lines(path: Path):
+    with open(path, encoding="utf-8") as handle:
+        for number, raw in enumerate(handle, start=1):
+            line = raw.strip()
+            if line and not line.startswith("#"):
+                yield number, line
+
+
+def _read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
+    cameras = {}
+    for number, line in _data_lines(path):
+        fields = line.split()
+        where = f"line {number}"
+        try:
+            camera_id, model, width, height = int(fields[0]), fields[1], int(fields[2]), int(
+                fields[3])
+            params = np.array([float(v) for v in fields[4:]])
+        except (IndexError, ValueError):
+            raise FormatError(path, where, f"malformed camera line {line!r}") from None
+        if model not in COLMAP_MODELS:
+            raise FormatError(path, where, f"unknown camera model {model}")
+        if len(params) != COLMAP_MODELS[model][1]:
+            raise FormatError(path, where, f"{model} needs {COLMAP_MODELS[model][1]} "
+                              f"parameters, found {len(params)}")
+        cameras[camera_id] = ColmapCamera(camera_id, model, width, height, params)
+    return cameras
+
+
+def _read_images_text(path: Path, lines: dict) -> dict[int, ColmapImage]:
+    images = {}
+    # Image lines come in pairs; the keypoint line may be empty, so read raw lines.
+    with open(path, encoding="utf-8") as handle:
+        raw_lines = [(n, l.rstrip("\n")) for n, l in enumerate(handle, start=1)]
+    data = [(n, l) for n, l in raw_lines if not l.startswith("#")]
+    while data and not data[-1][1].strip():
+        data.pop()
+    if len(data) % 2:
+        data.append((data[-1][0] + 1, ""))
+    for (number, header), (points_number, points_line) in zip(data[0::2], data[1::2]):
+        fields = header.split()
+        where = f"line {number}"
+        try:
+            image_id = int(fields[0])
+            qvec = np.array([float(v) for v in fields[1:5]])
+            tvec = np.array([float(v) for v in fields[5:8]])
+            camera_id = int(fields[8])
+            name = " ".join(fields[9:])
+            if not name:
+                raise ValueError
+        except (IndexError, ValueError):
+            raise FormatError(path, where, f"malformed image line {header!r}") from None
+        values = points_line.split()
+        if len(values) % 3:
+            raise FormatError(path, f"line {points_number}",
+                              "keypoint line must hold triples 'X Y POINT3D_ID'")
+        try:
+            triples = np.array(values, dtype=np.float64).reshape(-1, 3)
+        except ValueError:
+            raise FormatError(path, f"line {points_number}", "non-numeric keypoint") from None
+        images[image_id] = ColmapImage(image_id, name, camera_id, _pose(qvec, tvec, path, where),
+                                       triples[:, :2].copy(), triples[:, 2].astype(np.int64))
+        lines[("image", image_id)] = where
+    return images
+
+
+def _read_points_text(path: Path, lines: dict) -> dict[int, ColmapPoint3D]:
+    points = {}
+    for number, line in _data_lines(path):
+        fields = line.split()
+        where = f"line {number}"
+        try:
+            point_id = int(fields[0])
+            xyz = np.array([float(v) for v in fields[1:4]])
+            rgb = np.array([int(v) for v in fields[4:7]], dtype=np.uint8)
+            error = float(fields[7])
+            track = np.array([int(v) for v in fields[8:]], dtype=np.int64).reshape(-1, 2)
+        except (IndexError, ValueError):
+            raise FormatError(path, where, f"malformed point line {line[:80]!r}") from None
+        points[point_id] = ColmapPoint3D(point_id, xyz, rgb, error, track[:, 0], track[:, 1])
+        lines[("point", point_id)] = where
+    return points
+
+
+def _fmt(value: float) -> str:
+    return repr(float(value))
+
+
+def _write_text(model: ColmapReconstruction, directory: Path) -> None:
+    with open(directory / "cameras.txt", "w", encoding="utf-8") as out:
+        out.write("# Camera list with one line of data per camera:\n"
+                  "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+                  f"# Number of cameras: {len(model.cameras)}\n")
+        for cam in sorted(model.cameras.values(), key=lambda c: c.camera_id):
+            params = " ".join(_fmt(p) for p in cam.params)
+            out.write(f"{cam.camera_id} {cam.model} {cam.width} {cam.height} {params}\n")
+    num_obs = sum(len(p.image_ids) for p in model.points3d.values())
+    mean_track = num_obs / max(len(model.points3d), 1)
+    with open(directory / "images.txt", "w", encoding="utf-8") as out:
+        out.write("# Image list with two lines of data per image:\n"
+                  "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+                  "#   POINTS2D[] as (X, Y, POINT3D_ID)\n"
+                  f"# Number of images: {len(model.images)}, mean observations per image: "
+                  f"{num_obs / max(len(model.images), 1)}\n")
+        for image in sorted(model.images.values(), key=lambda i: i.image_id):
+            pose = image.cam_from_world
+            values = " ".join(_fmt(v) for v in (*pose.quat_wxyz(), *pose.translation))
+            out.write(f"{image.image_id} {values} {image.camera_id} {image.name}\n")
+            out.write(" ".join(f"{_fmt(x)} {_fmt(y)} {int(i)}" for (x, y), i in
+                               zip(image.xys, image.point3d_ids)) + "\n")
+    with open(directory / "points3D.txt", "w", encoding="utf-8") as out:
+        out.write("# 3D point list with one line of data per point:\n"
+                  "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
+                  f"# Number of points: {len(model.points3d)}, mean track length: {mean_track}\n")
+        for point in sorted(model.points3d.values(), key=lambda p: p.point3d_id):
+            xyz = " ".join(_fmt(v) for v in point.xyz)
+            rgb = " ".join(str(int(v)) for v in point.rgb)
+            track = " ".join(f"{int(i)} {int(j)}" for i, j in
+                             zip(point.image_ids, point.point2d_idxs))
+            out.write(f"{point.point3d_id} {xyz} {rgb} {_fmt(point.error)} {track}\n")
+
+
+# --------------------------------------------------------------------------------- binary
+class _Reader:
+    def __init__(self, handle: BinaryIO, path: Path) -> None:
+        self.handle, self.path = handle, path
+
+    def read(self, fmt: str):
+        size = struct.calcsize(fmt)
+        data = self.handle.read(size)
+        if len(data) != size:
+            raise FormatError(self.path, f"byte {self.handle.tell()}",
+                              "file is truncated", "re-export the model")
+        return struct.unpack(fmt, data)
+
+    def array(self, dtype: np.dtype, count: int) -> np.ndarray:
+        data = self.handle.read(dtype.itemsize * count)
+        if len(data) != dtype.itemsize * count:
+            raise FormatError(self.path, f"byte {self.handle.tell()}", "file is truncated",
+                              "re-export the model")
+        return np.frombuffer(data, dtype=dtype)
+
+    def name(self) -> str:
+        chars = bytearray()
+        while True:
+            char = self.handle.read(1)
+            if not char:
+                raise FormatError(self.path, None, "file is truncated inside an image name")
+            if char == b"\0":
+                return chars.decode("utf-8")
+            chars += char
+
+
+def _read_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
+    cameras = {}
+    with open(path, "rb") as handle:
+        reader = _Reader(handle, path)
+        (count,) = reader.read("<Q")
+        for index in range(count):
+            camera_id, model_id, width, height = reader.read("<IiQQ")
+            if model_id not in COLMAP_MODEL_NAMES:
+                raise FormatError(path, f"camera {index}", f"unknown model id {model_id}")
+            model = COLMAP_MODEL_NAMES[model_id]
+            params = np.array(reader.read(f"<{COLMAP_MODELS[model][1]}d"))
+            cameras[camera_id] = ColmapCamera(camera_id, model, width, height, params)
+    return cameras
+
+
+def _read_images_binary(path: Path) -> dict[int, ColmapImage]:
+    images = {}
+    with open(path, "rb") as handle:
+        reader = _Reader(handle, path)
+        (count,) = reader.read("<Q")
+        for _ in range(count):
+            image_id, *pose, camera_id = reader.read("<I7dI")
+            name = reader.name()
+            (num_points,) = reader.read("<Q")
+            points = reader.array(_POINT2D, num_points)
+            xys = np.stack([points["x"], points["y"]], axis=1)
+            images[image_id] = ColmapImage(
+                image_id, name, camera_id,
+                _pose(np.array(pose[:4]), np.array(pose[4:]), path, f"image {image_id}"),
+                xys, points["id"].astype(np.int64))
+    return images
+
+
+def _read_points_binary(path: Path) -> dict[int, ColmapPoint3D]:
+    points = {}
+    with open(path, "rb") as handle:
+        reader = _Reader(handle, path)
+        (count,) = reader.read("<Q")
+        for _ in range(count):
+            point_id, x, y, z, r, g, b, error, track_length = reader.read("<Q3d3BdQ")
+            track = reader.array(_TRACK, track_length)
+            points[point_id] = ColmapPoint3D(
+                point_id, np.array([x, y, z]), np.array([r, g, b], dtype=np.uint8), error,
+                track["image_id"].astype(np.int64), track["point2d_idx"].astype(np.int64))
+    return points
+
+
+def _write_binary(model: ColmapReconstruction, directory: Path) -> None:
+    with open(directory / "cameras.bin", "wb") as out:
+        out.write(struct.pack("<Q", len(model.cameras)))
+        for cam in sorted(model.cameras.values(), key=lambda c: c.camera_id):
+            model_id, num_params = COLMAP_MODELS[cam.model]
+            if len(cam.params) != num_params:
+                raise FormatError(directory / "cameras.bin", f"camera {cam.camera_id}",
+                                  f"{cam.model} needs {num_params} parameters")
+            out.write(struct.pack("<IiQQ", cam.camera_id, model_id, cam.width, cam.height))
+            out.write(np.asarray(cam.params, dtype="<f8").tobytes())
+    with open(directory / "images.bin", "wb") as out:
+        out.write(struct.pack("<Q", len(model.images)))
+        for image in sorted(model.images.values(), key=lambda i: i.image_id):
+            pose = image.cam_from_world
+            out.write(struct.pack("<I7dI", image.image_id, *pose.quat_wxyz(), *pose.translation,
+                                  image.camera_id))
+            out.write(image.name.encode("utf-8") + b"\0")
+            points = np.empty(len(image.xys), dtype=_POINT2D)
+            points["x"], points["y"] = image.xys[:, 0], image.xys[:, 1]
+            points["id"] = image.point3d_ids
+            out.write(struct.pack("<Q", len(points)) + points.tobytes())
+    with open(directory / "points3D.bin", "wb") as out:
+        out.write(struct.pack("<Q", len(model.points3d)))
+        for point in sorted(model.points3d.values(), key=lambda p: p.point3d_id):
+            track = np.empty(len(point.image_ids), dtype=_TRACK)
+            track["image_id"], track["point2d_idx"] = point.image_ids, point.point2d_idxs
+            out.write(struct.pack("<Q3d3BdQ", point.point3d_id, *point.xyz, *point.rgb,
+                                  point.error, len(track)) + track.tobytes())
+
+
+# ------------------------------------------------------------------------------ public API
+def detect_format(directory: Path) -> str:
+    for ext in ("bin", "txt"):
+        if all((directory / f"{name}.{ext}").is_file() for name in FILE_NAMES):
+            return ext
+    raise FormatError(directory, None, "no complete COLMAP model (cameras, images, points3D "
+                      "as .bin or .txt)")
+
+
+def read_model(directory: str | os.PathLike, ext: str | None = None) -> ColmapReconstruction:
+    """Read a COLMAP model directory; ``ext`` is ``"txt"``, ``"bin"`` or None to detect."""
+    directory = Path(directory)
+    ext = detect_format(directory) if ext is None else ext
+    files = {name: directory / f"{name}.{ext}" for name in FILE_NAMES}
+    for path in files.values():
+        if not path.is_file():
+            raise FormatError(path, None, "no such file")
+    lines: dict = {}
+    if ext == "txt":
+        model = ColmapReconstruction(_read_cameras_text(files["cameras"]),
+                                     _read_images_text(files["images"], lines),
+                                     _read_points_text(files["points3D"], lines))
+    elif ext == "bin":
+        model = ColmapReconstruction(_read_cameras_binary(files["cameras"]),
+                                     _read_images_binary(files["images"]),
+                                     _read_points_binary(files["points3D"]))
+    else:
+        raise CusfmError(f"unknown COLMAP model format {ext!r} (use 'txt' or 'bin')")
+    _validate(model, files, lines)
+    return model
+
+
+def write_model(model: ColmapReconstruction, directory: str | os.PathLike,
+                ext: str = "txt") -> Path:
+    """Write atomically: ``directory`` holds the complete model or is left as it was."""
+    directory = Path(directory)
+    files = {name: directory / f"{name}.{ext}" for name in FILE_NAMES}
+    _validate(model, files, {})
+    writer = {"txt": _write_text, "bin": _write_binary}.get(ext)
+    if writer is None:
+        raise CusfmError(f"unknown COLMAP model format {ext!r} (use 'txt' or 'bin')")
+    with atomic_directory(directory) as tmp:
+        writer(model, tmp)
+    return directory

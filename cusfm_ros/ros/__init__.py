@@ -1,0 +1,1 @@
+"""ROS 2 adapters. The only package that imports rclpy, and only lazily inside functions."""

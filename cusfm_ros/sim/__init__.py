@@ -1,0 +1,1 @@
+"""Synthetic scenes, rigs and bags with exact ground truth (tests, demo, benchmarks)."""

@@ -1,0 +1,36 @@
+"""Shared fixtures: seeded random generators and synthetic trajectories."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cusfm_ros.core.geometry import se3_exp
+from cusfm_ros.core.trajectory import Trajectory
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)
+
+
+def make_loop_trajectory(num_poses: int = 200, radius_m: float = 20.0, rate_hz: float = 10.0,
+                         start_ns: int = 1_700_000_000_000_000_000) -> Trajectory:
+    """A vehicle driving a circle with gentle height and pitch changes (world_from_body)."""
+    angles = np.linspace(0.0, 2.0 * np.pi, num_poses, endpoint=False)
+    poses = np.zeros((num_poses, 4, 4))
+    heading = angles + np.pi / 2.0
+    xi = np.zeros((num_poses, 6))
+    xi[:, 2] = heading
+    xi[:, 1] = 0.05 * np.sin(3 * angles)
+    poses[:] = se3_exp(xi)
+    poses[:, 0, 3] = radius_m * np.cos(angles)
+    poses[:, 1, 3] = radius_m * np.sin(angles)
+    poses[:, 2, 3] = 0.5 * np.sin(2 * angles)
+    stamps = start_ns + (np.arange(num_poses) * 1e9 / rate_hz).astype(np.int64)
+    return Trajectory(stamps, poses)
+
+
+@pytest.fixture
+def loop_trajectory() -> Trajectory:
+    return make_loop_trajectory()
