@@ -16,6 +16,9 @@ CAMERAS = {
     "pinhole": PinholeCamera(640, 480, fx=500, fy=505, cx=319.5, cy=239.5),
     "opencv": OpenCVCamera(640, 480, fx=500, fy=505, cx=320.2, cy=241.7, k1=-0.28, k2=0.07,
                            p1=1e-3, p2=-5e-4, k3=0.01),
+    "opencv_rational": OpenCVCamera(640, 480, fx=400, fy=401, cx=320.2, cy=241.7, k1=2.0,
+                                    k2=0.5, p1=1e-3, p2=-5e-4, k3=0.01, k4=2.3, k5=1.0,
+                                    k6=0.1),
     "fisheye": FisheyeCamera(640, 480, fx=200, fy=201, cx=320, cy=240, k1=0.05, k2=-0.01,
                              k3=0.002, k4=-0.0003),
     "ftheta": FThetaCamera(1280, 720, cx=640, cy=360, p1=500, p2=-10, p3=-20, p4=2),
@@ -62,10 +65,11 @@ def test_dict_round_trip(camera):
     assert again.to_dict() == camera.to_dict()
 
 
-def test_opencv_matches_cv2_project_points(rng):
-    cam = CAMERAS["opencv"]
+@pytest.mark.parametrize("name", ["opencv", "opencv_rational"])
+def test_opencv_matches_cv2_project_points(rng, name):
+    cam = CAMERAS[name]
     points = np.c_[rng.uniform(-0.5, 0.5, (200, 2)), np.ones(200)] * rng.uniform(1, 9, (200, 1))
-    dist = np.array([cam.k1, cam.k2, cam.p1, cam.p2, cam.k3])
+    dist = cam.coefficients
     expected, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), cam.K, dist)
     uv, _ = cam.project(points)
     np.testing.assert_allclose(uv, expected.reshape(-1, 2), atol=1e-9)
@@ -74,6 +78,7 @@ def test_opencv_matches_cv2_project_points(rng):
                                            1e-14)).reshape(-1, 2)
     target = PinholeCamera(640, 480, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy)
     ours, valid = undistort_points(cam, uv, target)
+    assert cam.is_rational == (len(dist) == 8)
     assert valid.all()
     np.testing.assert_allclose(ours, undist, atol=1e-4)
 

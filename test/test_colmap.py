@@ -109,6 +109,8 @@ def test_we_read_what_colmap_writes(tmp_path, rng):
     OpenCVCamera(640, 480, fx=500, fy=501, cx=320, cy=240, k1=-0.1, k2=0.01, p1=1e-4, p2=0),
     OpenCVCamera(640, 480, fx=500, fy=501, cx=320, cy=240, k1=-0.1, k2=0.01, p1=1e-4, p2=0,
                  k3=0.001),
+    OpenCVCamera(640, 480, fx=500, fy=501, cx=320, cy=240, k1=0.3, k2=0.01, p1=1e-4, p2=0,
+                 k3=0.001, k4=0.5, k5=0.01, k6=0.001),
     FisheyeCamera(640, 480, fx=300, fy=300, cx=320, cy=240, k1=0.01, k2=0.002, k3=0, k4=1e-4),
 ])
 def test_camera_conversion_round_trip_and_pixel_convention(camera):

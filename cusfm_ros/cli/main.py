@@ -12,10 +12,10 @@ import sys
 from collections.abc import Sequence
 
 from cusfm_ros import __version__
-from cusfm_ros.cli import demo, evaluate
+from cusfm_ros.cli import demo, evaluate, inspect, keyframes, simulate
 from cusfm_ros.errors import CusfmError
 
-SUBCOMMANDS = (evaluate, demo)
+SUBCOMMANDS = (simulate, inspect, keyframes, evaluate, demo)
 
 
 def build_parser() -> argparse.ArgumentParser:

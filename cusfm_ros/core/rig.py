@@ -53,6 +53,9 @@ class Rig:
     def __len__(self) -> int:
         return len(self.cameras)
 
+    def __iter__(self):
+        return iter(self.cameras)
+
     def __getitem__(self, name: str) -> RigCamera:
         try:
             return self._by_name[name]

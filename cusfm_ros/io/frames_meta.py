@@ -12,8 +12,8 @@ so numeric components of an axis-angle or translation and a ``camera_params_id``
 ``calibration_parameters``, ``camera_matrix``, image size, ``sensor_to_vehicle_transform``) are
 required and named in the error when missing.
 
-The distortion model is implied by the coefficients (none -> PINHOLE, up to five ->
-OPENCV plumb_bob). Fisheye and F-theta cameras carry an extra ``distortion_model`` field
+The distortion model is implied by the coefficients (none -> PINHOLE, up to eight ->
+OPENCV plumb_bob / rational_polynomial). Fisheye and F-theta cameras carry an extra ``distortion_model`` field
 (``equidistant`` / ``ftheta``) in ``calibration_parameters``; it is written only for them.
 """
 
@@ -112,19 +112,18 @@ def _camera_from_calibration(doc: _Doc, calibration: Any, where: str) -> CameraB
         if model == "ftheta":
             coefficients = dict(zip(("p0", "p1", "p2", "p3", "p4", "p5"), dist))
             return FThetaCamera(width, height, cx=cx, cy=cy, **coefficients)
-        if model != "plumb_bob":
-            raise FormatError(doc.path, f"{where}.distortion_model",
-                              f"unknown model {model!r} (plumb_bob, equidistant, ftheta)")
-        if len(dist) > 5 and np.any(dist[5:] != 0):
+        if model not in ("plumb_bob", "rational_polynomial"):
+            raise FormatError(doc.path, f"{where}.distortion_model", f"unknown model {model!r} "
+                              "(plumb_bob, rational_polynomial, equidistant, ftheta)")
+        if len(dist) > 8:
             raise FormatError(doc.path, f"{where}.distortion_coefficients",
-                              f"{len(dist)} coefficients: only plumb_bob (k1 k2 p1 p2 k3) is "
-                              "supported")
+                              f"{len(dist)} coefficients: at most 8 (k1 k2 p1 p2 k3 k4 k5 k6)")
         if not np.any(dist):
             return PinholeCamera(width, height, fx=fx, fy=fy, cx=cx, cy=cy)
-        padded = np.zeros(5)
-        padded[:min(len(dist), 5)] = dist[:5]
+        padded = np.zeros(8)
+        padded[:len(dist)] = dist
         return OpenCVCamera(width, height, fx=fx, fy=fy, cx=cx, cy=cy,
-                            **dict(zip(("k1", "k2", "p1", "p2", "k3"), padded)))
+                            **dict(zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), padded)))
     except FormatError:
         raise
     except CusfmError as exc:
@@ -229,7 +228,7 @@ def _calibration_json(camera: CameraBase) -> dict[str, Any]:
         if isinstance(camera, FisheyeCamera):
             dist, model = np.array([camera.k1, camera.k2, camera.k3, camera.k4]), "equidistant"
         elif isinstance(camera, OpenCVCamera):
-            dist, model = np.array([camera.k1, camera.k2, camera.p1, camera.p2, camera.k3]), None
+            dist, model = camera.coefficients, None
         else:
             dist, model = np.zeros(0), None
     out = {"image_width": camera.width, "image_height": camera.height,

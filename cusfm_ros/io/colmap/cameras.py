@@ -23,11 +23,12 @@ def camera_to_colmap(camera: CameraBase, camera_id: int) -> ColmapCamera:
         model, params = "PINHOLE", shifted(camera.fx, camera.fy, camera.cx, camera.cy)
     elif isinstance(camera, OpenCVCamera):
         base = shifted(camera.fx, camera.fy, camera.cx, camera.cy)
-        if camera.k3 == 0.0:
+        if camera.k3 == 0.0 and not camera.is_rational:
             model, params = "OPENCV", base + [camera.k1, camera.k2, camera.p1, camera.p2]
         else:
             model = "FULL_OPENCV"
-            params = base + [camera.k1, camera.k2, camera.p1, camera.p2, camera.k3, 0, 0, 0]
+            params = base + [camera.k1, camera.k2, camera.p1, camera.p2, camera.k3, camera.k4,
+                             camera.k5, camera.k6]
     elif isinstance(camera, FisheyeCamera):
         model = "OPENCV_FISHEYE"
         params = shifted(camera.fx, camera.fy, camera.cx, camera.cy) + [
@@ -53,11 +54,9 @@ def camera_from_colmap(colmap_camera: ColmapCamera) -> CameraBase:
         return OpenCVCamera(w, h, fx=p[0], fy=p[0], cx=p[1] - off, cy=p[2] - off, k1=p[3],
                             k2=k2, p1=0.0, p2=0.0)
     if model in ("OPENCV", "FULL_OPENCV"):
-        if model == "FULL_OPENCV" and any(p[9:12]):
-            raise CalibrationError("FULL_OPENCV with rational terms k4..k6 is not supported")
-        k3 = p[8] if model == "FULL_OPENCV" else 0.0
+        k3, k4, k5, k6 = p[8:12] if model == "FULL_OPENCV" else (0.0, 0.0, 0.0, 0.0)
         return OpenCVCamera(w, h, fx=p[0], fy=p[1], cx=p[2] - off, cy=p[3] - off, k1=p[4],
-                            k2=p[5], p1=p[6], p2=p[7], k3=k3)
+                            k2=p[5], p1=p[6], p2=p[7], k3=k3, k4=k4, k5=k5, k6=k6)
     if model == "OPENCV_FISHEYE":
         return FisheyeCamera(w, h, fx=p[0], fy=p[1], cx=p[2] - off, cy=p[3] - off, k1=p[4],
                              k2=p[5], k3=p[6], k4=p[7])

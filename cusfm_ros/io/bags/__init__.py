@@ -1,0 +1,1 @@
+"""ROS bag reading and writing through rosbags (mcap, sqlite3, ROS 1)."""

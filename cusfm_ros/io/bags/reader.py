@@ -1,0 +1,124 @@
+"""Streaming access to recorded bags through rosbags' ``AnyReader``.
+
+Opens rosbag2 directories (mcap or sqlite3 storage), bare ``.mcap`` / ``.db3`` files and ROS 1
+``.bag`` files. Messages are streamed one at a time (a 50 GB bag is never loaded), and errors
+from the storage layer become one ``BagError`` naming the bag, the problem and the fix.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from cusfm_ros.errors import BagError
+from cusfm_ros.io.bags.messages import header_stamp_from_raw, typestore
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    name: str
+    msgtype: str
+    count: int
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    topic: str
+    msgtype: str
+    bag_stamp_ns: int
+    """When the recorder received it (not the header stamp)."""
+    raw: bytes
+
+
+class BagReader:
+    """``with BagReader(path) as bag: for message in bag.messages([...]): ...``"""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise BagError(f"{self.path}: no such bag (pass a rosbag2 directory, a .mcap or "
+                           ".db3 file, or a ROS 1 .bag file)")
+        if self.path.is_file() and self.path.suffix not in (".mcap", ".db3", ".bag"):
+            raise BagError(f"{self.path}: unknown bag storage {self.path.suffix!r} "
+                           "(supported: rosbag2 directory, .mcap, .db3, ROS 1 .bag)")
+        if self.path.is_dir() and not (self.path / "metadata.yaml").is_file():
+            raise BagError(f"{self.path}: directory has no metadata.yaml, so it is not a "
+                           "rosbag2 recording (for a lone storage file, pass the .mcap/.db3 "
+                           "itself; after a crash, `ros2 bag reindex` restores metadata.yaml)")
+        self._reader = None
+
+    def __enter__(self) -> BagReader:
+        from rosbags.highlevel import AnyReader
+
+        try:
+            self._reader = AnyReader([self.path], default_typestore=typestore())
+            self._reader.open()
+        except Exception as exc:  # rosbags raises many types for broken files
+            raise BagError(f"{self.path}: cannot open the bag ({type(exc).__name__}: {exc}); "
+                           "it is corrupt, truncated or of an unknown storage format "
+                           "(for rosbag2, `ros2 bag reindex` may repair it)") from None
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self._reader is not None:
+            try:
+                self._reader.close()
+            except Exception:  # closing a broken bag must not hide the original error
+                logger.debug("error while closing %s", self.path, exc_info=True)
+            self._reader = None
+
+    @property
+    def is_ros2(self) -> bool:
+        return bool(self._reader.is2)
+
+    def topics(self) -> dict[str, TopicInfo]:
+        out: dict[str, TopicInfo] = {}
+        for connection in self._reader.connections:
+            previous = out.get(connection.topic)
+            count = connection.msgcount + (previous.count if previous else 0)
+            out[connection.topic] = TopicInfo(connection.topic, connection.msgtype, count)
+        return dict(sorted(out.items()))
+
+    @property
+    def start_ns(self) -> int:
+        return int(self._reader.start_time)
+
+    @property
+    def end_ns(self) -> int:
+        return int(self._reader.end_time)
+
+    def messages(self, topics: Iterable[str]) -> Iterator[RawMessage]:
+        wanted = set(topics)
+        connections = [c for c in self._reader.connections if c.topic in wanted]
+        count = 0
+        try:
+            for connection, stamp, raw in self._reader.messages(connections=connections):
+                count += 1
+                yield RawMessage(connection.topic, connection.msgtype, int(stamp), bytes(raw))
+        except BagError:
+            raise
+        except Exception as exc:
+            raise BagError(f"{self.path}: the bag is corrupt or truncated after {count} "
+                           f"messages ({type(exc).__name__}: {exc}); re-record or repair it "
+                           "(`ros2 bag reindex` for rosbag2)") from None
+
+    def deserialize(self, message: RawMessage) -> Any:
+        try:
+            return self._reader.deserialize(message.raw, message.msgtype)
+        except Exception as exc:
+            raise BagError(f"{self.path}: cannot decode a {message.msgtype} message on "
+                           f"{message.topic} ({type(exc).__name__}: {exc}); the message is "
+                           "corrupt or its type definition differs from ROS 2 Jazzy's") from None
+
+    def header_stamp_ns(self, message: RawMessage) -> int:
+        """Header stamp without decoding the body (cheap for images)."""
+        try:
+            return header_stamp_from_raw(message.raw, cdr=self.is_ros2)
+        except BagError as exc:
+            raise BagError(f"{self.path}: {message.topic}: {exc}") from None

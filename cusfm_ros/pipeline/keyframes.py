@@ -1,0 +1,367 @@
+"""The keyframe stage: bag -> ``RUN_DIR/keyframes/`` (images + frames_meta.json).
+
+Two streaming passes over the bag keep memory bounded: the first reads calibration, transforms,
+poses and only the *header stamps* of images; the second decodes just the images of the
+selected keyframes and writes them out. The output directory is written to a temporary path and
+renamed at the end, and is reused on a later run with the same bag and options (resumable).
+
+Outputs:
+- ``keyframes/<camera>/<stamp_ns>.png`` — keyframe images;
+- ``keyframes/frames_meta.json`` — pyCuSFM-compatible keyframe metadata with intrinsics,
+  ``rig_from_cam`` extrinsics and initial ``world_from_cam`` poses;
+- ``keyframes/initial_poses.tum`` — ``world_from_base_link`` of each keyframe rig sample;
+- ``keyframes/stage.json`` — options, source bag, counts and timings.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cusfm_ros.core.cameras import CameraBase
+from cusfm_ros.core.geometry import Rigid3, check_finite
+from cusfm_ros.core.keyframe_selection import group_rig_samples, select_keyframes
+from cusfm_ros.core.keyframes import Keyframe, KeyframeSet
+from cusfm_ros.core.rig import Rig, RigCamera
+from cusfm_ros.core.trajectory import Trajectory
+from cusfm_ros.errors import BagError, CusfmError, GeometryError
+from cusfm_ros.io.atomic import atomic_directory
+from cusfm_ros.io.bags import messages as m
+from cusfm_ros.io.bags.layout import BagLayout, CameraStream, discover_layout
+from cusfm_ros.io.bags.reader import BagReader
+from cusfm_ros.io.bags.tf import TransformTree
+from cusfm_ros.io.extrinsics_yaml import read_extrinsics
+from cusfm_ros.io.frames_meta import read_frames_meta, write_frames_meta
+from cusfm_ros.io.tum import write_tum
+from cusfm_ros.pipeline.options import options_as_dict
+
+logger = logging.getLogger(__name__)
+STAGE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class KeyframeOptions:
+    image_topics: tuple[str, ...] = ()
+    """Image topics to use; empty: every image topic with a CameraInfo beside it."""
+    pose_source: str = "auto"
+    """``odom`` (a nav_msgs/Odometry topic), ``tf`` (the /tf chain) or ``auto``."""
+    odom_topic: str | None = None
+    """Odometry topic; None: the only one in the bag."""
+    world_frame: str | None = None
+    """Fixed frame of the poses for ``tf``; None: the odometry's header frame or ``odom``."""
+    base_frame: str | None = None
+    """Body frame; None: the odometry's child frame or ``base_link``."""
+    extrinsics_file: str | None = None
+    """Extrinsics YAML overriding /tf_static (cameras by name)."""
+    sync_tolerance_ms: float = 5.0
+    """Images of different cameras closer than this belong to one rig sample."""
+    min_translation_m: float = 0.5
+    min_rotation_deg: float = 5.0
+
+    def __post_init__(self) -> None:
+        from cusfm_ros.errors import ConfigError
+
+        if self.pose_source not in ("auto", "odom", "tf"):
+            raise ConfigError(f"pose_source must be auto, odom or tf, got {self.pose_source!r}")
+        if self.sync_tolerance_ms < 0 or self.min_translation_m < 0 or self.min_rotation_deg < 0:
+            raise ConfigError("keyframe thresholds and sync tolerance must be >= 0")
+
+
+@dataclass
+class KeyframeResult:
+    directory: Path
+    keyframe_set: KeyframeSet
+    num_images_in_bag: int
+    num_samples: int
+    num_keyframe_samples: int
+    seconds: float
+    reused: bool = False
+
+
+class KeyframeStage:
+    def __init__(self, options: KeyframeOptions = KeyframeOptions()) -> None:
+        self.options = options
+
+    # ----------------------------------------------------------------------------- resume
+    def _fingerprint(self, bag: Path) -> dict:
+        stat = bag.stat() if bag.is_file() else (bag / "metadata.yaml").stat()
+        return {"version": STAGE_VERSION, "bag": str(bag.resolve()), "bag_mtime_ns":
+                stat.st_mtime_ns, "options": options_as_dict(self.options)}
+
+    def solve(self, bag_path: str | os.PathLike, run_dir: str | os.PathLike,
+              overwrite: bool = False) -> KeyframeResult:
+        bag_path, out = Path(bag_path), Path(run_dir) / "keyframes"
+        reader = BagReader(bag_path)  # validates the path before anything else
+        fingerprint = self._fingerprint(bag_path)
+        stage_file = out / "stage.json"
+        if not overwrite and stage_file.is_file():
+            previous = json.loads(stage_file.read_text())
+            if previous.get("fingerprint") == fingerprint:
+                logger.info("keyframes: reusing %s (same bag and options)", out)
+                counts = previous["counts"]
+                return KeyframeResult(out, read_frames_meta(out / "frames_meta.json"),
+                                      counts["images_in_bag"], counts["rig_samples"],
+                                      counts["keyframe_samples"], 0.0, reused=True)
+        started = time.perf_counter()
+        with reader as bag:
+            layout = self._layout(bag)
+            scan = self._scan(bag, layout)
+            rig = self._rig(layout, scan)
+            world_from_base, pose_source = self._poses(scan)
+            samples, sample_poses = self._samples(scan, layout, world_from_base)
+            chosen = select_keyframes(sample_poses, self.options.min_translation_m,
+                                      self.options.min_rotation_deg)
+            logger.info("keyframes: %d rig samples, %d keyframe samples (>= %.2f m or "
+                        "%.1f deg apart), poses from %s", len(samples), len(chosen),
+                        self.options.min_translation_m, self.options.min_rotation_deg,
+                        pose_source)
+            with atomic_directory(out) as tmp:
+                keyframe_set = self._write(bag, layout, rig, samples, sample_poses, chosen, tmp)
+                counts = {"images_in_bag": scan["num_images"], "rig_samples": len(samples),
+                          "keyframe_samples": int(len(chosen)),
+                          "keyframes": len(keyframe_set.keyframes),
+                          "cameras": len(rig)}
+                seconds = time.perf_counter() - started
+                (tmp / "stage.json").write_text(json.dumps(
+                    {"fingerprint": fingerprint, "counts": counts, "pose_source": pose_source,
+                     "seconds": seconds}, indent=2))
+        logger.info("keyframes: wrote %d keyframes of %d cameras to %s in %.1f s",
+                    len(keyframe_set.keyframes), len(rig), out, seconds)
+        return KeyframeResult(out, keyframe_set, scan["num_images"], len(samples), len(chosen),
+                              seconds)
+
+    # ----------------------------------------------------------------------------- layout
+    def _layout(self, bag: BagReader) -> BagLayout:
+        topics = bag.topics()
+        layout = discover_layout(topics, self.options.image_topics)
+        if not layout.cameras:
+            raise BagError(f"{bag.path}: no image topics (sensor_msgs/Image or CompressedImage)"
+                           " in the bag; topics: " + ", ".join(topics))
+        for camera in layout.cameras:
+            if camera.info_topic is None:
+                raise BagError(f"{camera.image_topic}: no CameraInfo topic beside it (expected "
+                               f"{camera.image_topic.rsplit('/image', 1)[0]}/camera_info); "
+                               "record camera_info with the images, or leave this camera out "
+                               "with --image-topics")
+        return layout
+
+    # ------------------------------------------------------------------------------ pass 1
+    def _scan(self, bag: BagReader, layout: BagLayout) -> dict:
+        o = self.options
+        topics = bag.topics()
+        odom_topic = o.odom_topic
+        if odom_topic is not None and odom_topic not in topics:
+            raise BagError(f"odometry topic {odom_topic} is not in the bag (odometry topics: "
+                           f"{', '.join(layout.odometry_topics) or 'none'})")
+        if o.pose_source in ("auto", "odom") and odom_topic is None:
+            if len(layout.odometry_topics) == 1:
+                odom_topic = layout.odometry_topics[0]
+            elif len(layout.odometry_topics) > 1 and o.pose_source == "odom":
+                raise BagError(f"several odometry topics ({', '.join(layout.odometry_topics)});"
+                               " choose one with --odom-topic")
+        if o.pose_source == "odom" and odom_topic is None:
+            raise BagError("no nav_msgs/Odometry topic in the bag; use --pose-source tf or "
+                           "record odometry")
+        use_odom = odom_topic is not None and o.pose_source != "tf"
+        if not use_odom and layout.tf_topic is None:
+            raise BagError(f"{bag.path}: no pose source: no nav_msgs/Odometry topic and no /tf; "
+                           "record odometry (--odom-topic) or the /tf chain")
+        image_topics = {c.image_topic: c for c in layout.cameras}
+        info_topics = {c.info_topic: c for c in layout.cameras}
+        wanted = set(image_topics) | set(info_topics)
+        for topic in (layout.tf_static_topic, layout.tf_topic if not use_odom else None,
+                      odom_topic if use_odom else None):
+            if topic:
+                wanted.add(topic)
+        tree = TransformTree()
+        infos: dict[str, object] = {}
+        stamps: dict[str, list[int]] = {c.name: [] for c in layout.cameras}
+        odom_stamps, odom_poses, odom_frames = [], [], None
+        num_images = 0
+        for message in bag.messages(wanted):
+            topic = message.topic
+            if topic in image_topics:
+                stamps[image_topics[topic].name].append(bag.header_stamp_ns(message))
+                num_images += 1
+                if num_images % 2000 == 0:
+                    logger.info("keyframes: scanned %d images", num_images)
+            elif topic in info_topics:
+                name = info_topics[topic].name
+                if name not in infos:
+                    infos[name] = bag.deserialize(message)
+            elif topic == odom_topic:
+                odometry = bag.deserialize(message)
+                odom_stamps.append(m.stamp_ns_of(odometry.header))
+                odom_poses.append(m.rigid_from_pose(
+                    odometry.pose.pose, f"{topic} message {len(odom_stamps)}").matrix())
+                odom_frames = odom_frames or (odometry.header.frame_id.lstrip("/"),
+                                              odometry.child_frame_id.lstrip("/"))
+            else:  # tf / tf_static
+                tf = bag.deserialize(message)
+                for transform in tf.transforms:
+                    pose = m.rigid_from_transform(transform.transform,
+                                                  f"{topic} {transform.header.frame_id} -> "
+                                                  f"{transform.child_frame_id}")
+                    if topic == layout.tf_static_topic:
+                        tree.add_static(transform.header.frame_id, transform.child_frame_id,
+                                        pose)
+                    else:
+                        tree.add_dynamic(m.stamp_ns_of(transform.header),
+                                         transform.header.frame_id, transform.child_frame_id,
+                                         pose)
+        for camera in layout.cameras:
+            if camera.name not in infos:
+                raise BagError(f"{camera.info_topic}: no CameraInfo message in the bag; record "
+                               f"camera_info for {camera.image_topic}")
+            series = np.asarray(stamps[camera.name], dtype=np.int64)
+            if len(series) == 0:
+                raise BagError(f"{camera.image_topic}: no images in the bag")
+            if np.any(np.diff(series) <= 0):
+                bad = int(np.argmax(np.diff(series) <= 0)) + 1
+                raise BagError(f"{camera.image_topic}: header stamps are not increasing at image "
+                               f"{bad} ({series[bad - 1]} then {series[bad]} ns); the camera "
+                               "driver's clock jumped — fix the stamps (e.g. re-stamp with the "
+                               "bag time) before mapping")
+        return {"tree": tree, "infos": infos, "stamps": stamps, "num_images": num_images,
+                "odom_topic": odom_topic if use_odom else None, "odom_stamps": odom_stamps,
+                "odom_poses": odom_poses, "odom_frames": odom_frames}
+
+    # -------------------------------------------------------------------------- calibration
+    def _rig(self, layout: BagLayout, scan: dict) -> Rig:
+        o = self.options
+        base_frame = o.base_frame or (scan["odom_frames"][1] if scan["odom_frames"]
+                                      else "base_link")
+        override = read_extrinsics(o.extrinsics_file) if o.extrinsics_file else None
+        cameras = []
+        for stream in layout.cameras:
+            info = scan["infos"][stream.name]
+            camera: CameraBase = m.camera_from_camera_info(info, stream.info_topic)
+            frame_id = info.header.frame_id.lstrip("/")
+            if override is not None:
+                if stream.name not in override.cameras:
+                    raise BagError(f"{o.extrinsics_file}: no extrinsics for camera "
+                                   f"{stream.name} (cameras there: "
+                                   f"{', '.join(override.cameras)})")
+                entry = override.cameras[stream.name]
+                rig_from_cam, frame_id = entry.rig_from_cam, entry.frame_id or frame_id
+            else:
+                if not frame_id:
+                    raise BagError(f"{stream.info_topic}: CameraInfo has an empty frame_id, so "
+                                   "its extrinsics cannot be looked up; pass --extrinsics FILE")
+                try:
+                    rig_from_cam = scan["tree"].static_transform(base_frame, frame_id)
+                except BagError:
+                    raise BagError(f"{stream.image_topic}: no transform {base_frame} -> "
+                                   f"{frame_id} in /tf_static; record the static transforms "
+                                   "or pass --extrinsics FILE") from None
+            cameras.append(RigCamera(stream.name, camera, rig_from_cam, frame_id))
+        return Rig(tuple(cameras), base_frame)
+
+    # -------------------------------------------------------------------------------- poses
+    def _poses(self, scan: dict) -> tuple[Trajectory, str]:
+        o = self.options
+        if scan["odom_topic"] is not None:
+            topic = scan["odom_topic"]
+            if not scan["odom_stamps"]:
+                raise BagError(f"{topic}: no odometry messages in the bag")
+            stamps = np.asarray(scan["odom_stamps"], dtype=np.int64)
+            if np.any(np.diff(stamps) <= 0):
+                bad = int(np.argmax(np.diff(stamps) <= 0)) + 1
+                raise BagError(f"{topic}: header stamps are not increasing at message {bad} "
+                               f"({stamps[bad - 1]} then {stamps[bad]} ns); the recording mixes "
+                               "publishers or clocks — pick one source with --odom-topic or "
+                               "--pose-source tf")
+            base = o.base_frame or scan["odom_frames"][1]
+            if o.base_frame and o.base_frame != scan["odom_frames"][1]:
+                raise BagError(f"{topic} tracks {scan['odom_frames'][1]}, not --base-frame "
+                               f"{o.base_frame}")
+            return Trajectory(stamps, np.stack(scan["odom_poses"])), f"{topic} ({base})"
+        world = o.world_frame or "odom"
+        base = o.base_frame or "base_link"
+        return scan["tree"].trajectory(world, base), f"/tf {world} -> {base}"
+
+    def _samples(self, scan: dict, layout: BagLayout, world_from_base: Trajectory):
+        stamps = {name: np.asarray(v, dtype=np.int64) for name, v in scan["stamps"].items()}
+        samples = group_rig_samples(stamps, int(self.options.sync_tolerance_ms * 1e6))
+        first, last = world_from_base.stamps_ns[0], world_from_base.stamps_ns[-1]
+        inside = [s for s in samples if first <= min(s.image_stamps_ns.values())
+                  and max(s.image_stamps_ns.values()) <= last]
+        if len(inside) < len(samples):
+            logger.warning("keyframes: %d of %d rig samples fall outside the pose source's "
+                           "time span and are skipped", len(samples) - len(inside), len(samples))
+        if not inside:
+            raise BagError("no image lies within the time span of the poses "
+                           f"[{first}, {last}] ns; the cameras and the pose source use "
+                           "different clocks")
+        incomplete = sum(len(s.image_stamps_ns) < len(layout.cameras) for s in inside)
+        if incomplete:
+            logger.warning("keyframes: %d rig samples miss some camera (dropped frames or "
+                           "a sync tolerance below the cameras' offset)", incomplete)
+        sample_stamps = np.array([s.stamp_ns for s in inside], dtype=np.int64)
+        try:
+            poses = world_from_base.interpolate(sample_stamps)
+        except GeometryError as exc:
+            raise BagError(f"pose interpolation failed: {exc}") from None
+        return inside, poses
+
+    # ------------------------------------------------------------------------------ pass 2
+    def _write(self, bag: BagReader, layout: BagLayout, rig: Rig, samples, sample_poses,
+               chosen: np.ndarray, tmp: Path) -> KeyframeSet:
+        wanted: dict[tuple[str, int], tuple[int, str]] = {}
+        for sample_index in chosen:
+            for name, stamp in samples[sample_index].image_stamps_ns.items():
+                wanted[(name, stamp)] = (int(sample_index), name)
+        streams: dict[str, CameraStream] = {c.image_topic: c for c in layout.cameras}
+        world_from_base_all = {}
+        keyframes: list[Keyframe] = []
+        written = 0
+        for camera in rig.cameras:
+            (tmp / camera.name).mkdir(parents=True, exist_ok=True)
+        for message in bag.messages(streams):
+            stream = streams[message.topic]
+            stamp = bag.header_stamp_ns(message)
+            key = (stream.name, stamp)
+            if key not in wanted:
+                continue
+            sample_index, name = wanted.pop(key)
+            image = m.decode_image(bag.deserialize(message), message.msgtype, message.topic)
+            camera = rig[name].camera
+            if image.shape[1] != camera.width or image.shape[0] != camera.height:
+                raise BagError(f"{message.topic}: image is {image.shape[1]}x{image.shape[0]} "
+                               f"but {stream.info_topic} says {camera.width}x{camera.height}; "
+                               "fix the CameraInfo or record matching topics")
+            image_name = f"{name}/{stamp}.png"
+            to_write = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+            if not cv2.imwrite(str(tmp / image_name), to_write):
+                raise CusfmError(f"cannot write {tmp / image_name}")
+            world_from_base = Rigid3.from_matrix(check_finite(sample_poses[sample_index],
+                                                              "interpolated pose"))
+            world_from_base_all[sample_index] = world_from_base
+            keyframes.append(Keyframe(str(len(keyframes)), name, stamp, image_name,
+                                      str(sample_index), world_from_base * rig[name].rig_from_cam))
+            written += 1
+            if written % 200 == 0:
+                logger.info("keyframes: wrote %d/%d images", written, written + len(wanted))
+        if wanted:
+            raise BagError(f"{len(wanted)} selected images vanished between the two passes "
+                           "over the bag; is it being written to?")
+        order = sorted(range(len(keyframes)), key=lambda i: (keyframes[i].stamp_ns,
+                                                             keyframes[i].camera_name))
+        keyframes = [Keyframe(str(new), *(getattr(keyframes[old], f) for f in
+                                          ("camera_name", "stamp_ns", "image_name", "sample_id",
+                                           "world_from_cam")))
+                     for new, old in enumerate(order)]
+        keyframe_set = KeyframeSet(rig, keyframes, "EGO_MOTION")
+        write_frames_meta(tmp / "frames_meta.json", keyframe_set)
+        selected = sorted(world_from_base_all)
+        write_tum(tmp / "initial_poses.tum", Trajectory(
+            np.array([samples[i].stamp_ns for i in selected], dtype=np.int64),
+            np.stack([world_from_base_all[i].matrix() for i in selected])))
+        return keyframe_set
