@@ -22,5 +22,8 @@ test: $(STAMP)
 test-all: $(STAMP)
 	$(PY) -m pytest -q -m "not gpu" test
 
+lint: $(STAMP)
+	$(VENV)/bin/ruff check cusfm_ros test bench
+
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info

@@ -128,8 +128,8 @@ def test_ftheta_cannot_be_written_to_colmap():
 def test_image_with_unknown_camera_is_named(tmp_path, rng):
     write_model(make_model(rng), tmp_path / "sparse", "txt")
     cameras = tmp_path / "sparse" / "cameras.txt"
-    cameras.write_text("\n".join(l for l in cameras.read_text().splitlines()
-                                 if not l.startswith("2 ")))
+    cameras.write_text("\n".join(line for line in cameras.read_text().splitlines()
+                                 if not line.startswith("2 ")))
     with pytest.raises(FormatError, match=r"images.txt:line \d+: image 1 .* uses camera 2, "
                                           r"which is not in cameras.txt"):
         read_model(tmp_path / "sparse")

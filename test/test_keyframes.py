@@ -69,6 +69,13 @@ def test_cameras_with_small_offsets_are_grouped(tmp_path):
     assert result.num_samples == 5
     samples = result.keyframe_set.samples()
     assert len(samples) == 5 and all(len(group) == 2 for group in samples.values())
+    from bagtools import trajectory
+    odom_stamps = START_NS + (np.arange(11) * 1e9 / 20.0).astype(np.int64)
+    odom_poses = trajectory(11, 0.3)
+    for keyframe in result.keyframe_set.keyframes:
+        base = interpolate_poses(odom_stamps, odom_poses, [keyframe.stamp_ns])[0]
+        expected = base @ result.keyframe_set.rig[keyframe.camera_name].rig_from_cam.matrix()
+        np.testing.assert_allclose(keyframe.world_from_cam.matrix(), expected, atol=1e-9)
     tight = KeyframeOptions(min_translation_m=0.0, min_rotation_deg=0.0, sync_tolerance_ms=1.0)
     assert KeyframeStage(tight).solve(tmp_path / "bag", tmp_path / "run2").num_samples == 11
 

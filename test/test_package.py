@@ -79,3 +79,20 @@ def test_cusfm_help_and_version():
                              capture_output=True, text=True, check=True).stdout
     import cusfm_ros
     assert version.strip() == f"cusfm {cusfm_ros.__version__}"
+
+
+@pytest.mark.parametrize("preset", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)
+def test_config_presets_load_into_options(preset):
+    from cusfm_ros.pipeline.keyframes import KeyframeOptions
+    from cusfm_ros.pipeline.options import load_config, options_from_dict
+    config = load_config(preset)
+    assert set(config) <= {"keyframes"}
+    options_from_dict(KeyframeOptions, config.get("keyframes"), str(preset))
+
+
+def test_unknown_option_keys_are_rejected(tmp_path):
+    from cusfm_ros.errors import ConfigError
+    from cusfm_ros.pipeline.keyframes import KeyframeOptions
+    from cusfm_ros.pipeline.options import options_from_dict
+    with pytest.raises(ConfigError, match=r"x.yaml: unknown option\(s\) \['min_translation'\]"):
+        options_from_dict(KeyframeOptions, {"min_translation": 1.0}, "x.yaml")

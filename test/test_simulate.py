@@ -80,7 +80,7 @@ def test_mcap_package_reads_our_bags_directly(tmp_path):
     seen = {}
     with open(next((out / "bag").glob("*.mcap")), "rb") as handle:
         reader = make_reader(handle, decoder_factories=[DecoderFactory()])
-        for schema, channel, message, decoded in reader.iter_decoded_messages():
+        for schema, channel, _message, decoded in reader.iter_decoded_messages():
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
             if channel.topic == "/odom":
                 index = seen["/odom"] - 1
@@ -124,7 +124,8 @@ def test_second_session_noise_and_rolling_shutter(tmp_path):
                                 rolling_shutter_line_delay_s=1e-4, **{**TINY, "frames": 6})
     out = Simulator(options).generate(tmp_path / "sim")
     scene = json.loads((out / "scene.json").read_text())
-    assert scene["options"]["seed"] == 0 and scene["options"]["rolling_shutter_line_delay_s"] == 1e-4
+    assert scene["options"]["seed"] == 0
+    assert scene["options"]["rolling_shutter_line_delay_s"] == 1e-4
     assert scene["frames"] == {"session1": 6, "session2": 6}  # too short for a lap: same length
     # /tf_static is off by exactly the requested amounts; the GT file is not
     truth = read_extrinsics(out / "extrinsics_gt.yaml")

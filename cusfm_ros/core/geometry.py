@@ -40,6 +40,13 @@ def check_finite(values: np.ndarray, what: str) -> np.ndarray:
     return values
 
 
+def first_non_increasing(stamps_ns: np.ndarray) -> int | None:
+    """Index of the first stamp not greater than its predecessor, or None if strictly
+    increasing."""
+    bad = np.nonzero(np.diff(np.asarray(stamps_ns, dtype=np.int64)) <= 0)[0]
+    return int(bad[0]) + 1 if len(bad) else None
+
+
 def normalize_quaternion(quat: np.ndarray, what: str = "quaternion") -> np.ndarray:
     """Normalize quaternion(s) (any component order), rejecting NaN and norms far from 1."""
     quat = check_finite(quat, what)
@@ -264,8 +271,8 @@ def interpolate_poses(stamps_ns: np.ndarray, matrices: np.ndarray, query_stamps_
     matrices = check_finite(matrices, f"{what} poses")
     if stamps.ndim != 1 or len(stamps) != len(matrices) or len(stamps) == 0:
         raise GeometryError(f"{what}: need one pose per stamp and at least one pose")
-    if np.any(np.diff(stamps) <= 0):
-        bad = int(np.argmax(np.diff(stamps) <= 0)) + 1
+    bad = first_non_increasing(stamps)
+    if bad is not None:
         raise GeometryError(f"{what}: stamps are not strictly increasing at index {bad}")
     if query.size and (query.min() < stamps[0] or query.max() > stamps[-1]):
         raise GeometryError(

@@ -50,7 +50,8 @@ def _vector(path: Path, where: str, value: object, length: int) -> np.ndarray:
     return array
 
 
-def _check_keys(path: Path, where: str, data: object, required: set, optional: set = set()):
+def _check_keys(path: Path, where: str, data: object, required: set,
+                optional: frozenset = frozenset()):
     if not isinstance(data, dict):
         raise FormatError(path, where, f"expected a mapping, got {type(data).__name__}")
     missing = required - data.keys()

@@ -13,7 +13,8 @@ so numeric components of an axis-angle or translation and a ``camera_params_id``
 required and named in the error when missing.
 
 The distortion model is implied by the coefficients (none -> PINHOLE, up to eight ->
-OPENCV plumb_bob / rational_polynomial). Fisheye and F-theta cameras carry an extra ``distortion_model`` field
+OPENCV plumb_bob / rational_polynomial). Fisheye and F-theta cameras carry an extra
+``distortion_model`` field
 (``equidistant`` / ``ftheta``) in ``calibration_parameters``; it is written only for them.
 """
 

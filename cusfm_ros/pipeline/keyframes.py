@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from cusfm_ros.core.cameras import CameraBase
-from cusfm_ros.core.geometry import Rigid3, check_finite
+from cusfm_ros.core.geometry import Rigid3, check_finite, first_non_increasing
 from cusfm_ros.core.keyframe_selection import group_rig_samples, select_keyframes
 from cusfm_ros.core.keyframes import Keyframe, KeyframeSet
 from cusfm_ros.core.rig import Rig, RigCamera
@@ -123,7 +123,8 @@ class KeyframeStage:
                         self.options.min_translation_m, self.options.min_rotation_deg,
                         pose_source)
             with atomic_directory(out) as tmp:
-                keyframe_set = self._write(bag, layout, rig, samples, sample_poses, chosen, tmp)
+                keyframe_set = self._write(bag, layout, rig, samples, sample_poses, chosen, tmp,
+                                           world_from_base)
                 counts = {"images_in_bag": scan["num_images"], "rig_samples": len(samples),
                           "keyframe_samples": int(len(chosen)),
                           "keyframes": len(keyframe_set.keyframes),
@@ -223,8 +224,7 @@ class KeyframeStage:
             series = np.asarray(stamps[camera.name], dtype=np.int64)
             if len(series) == 0:
                 raise BagError(f"{camera.image_topic}: no images in the bag")
-            if np.any(np.diff(series) <= 0):
-                bad = int(np.argmax(np.diff(series) <= 0)) + 1
+            if (bad := first_non_increasing(series)) is not None:
                 raise BagError(f"{camera.image_topic}: header stamps are not increasing at image "
                                f"{bad} ({series[bad - 1]} then {series[bad]} ns); the camera "
                                "driver's clock jumped — fix the stamps (e.g. re-stamp with the "
@@ -272,8 +272,7 @@ class KeyframeStage:
             if not scan["odom_stamps"]:
                 raise BagError(f"{topic}: no odometry messages in the bag")
             stamps = np.asarray(scan["odom_stamps"], dtype=np.int64)
-            if np.any(np.diff(stamps) <= 0):
-                bad = int(np.argmax(np.diff(stamps) <= 0)) + 1
+            if (bad := first_non_increasing(stamps)) is not None:
                 raise BagError(f"{topic}: header stamps are not increasing at message {bad} "
                                f"({stamps[bad - 1]} then {stamps[bad]} ns); the recording mixes "
                                "publishers or clocks — pick one source with --odom-topic or "
@@ -313,7 +312,7 @@ class KeyframeStage:
 
     # ------------------------------------------------------------------------------ pass 2
     def _write(self, bag: BagReader, layout: BagLayout, rig: Rig, samples, sample_poses,
-               chosen: np.ndarray, tmp: Path) -> KeyframeSet:
+               chosen: np.ndarray, tmp: Path, world_from_base: Trajectory) -> KeyframeSet:
         wanted: dict[tuple[str, int], tuple[int, str]] = {}
         for sample_index in chosen:
             for name, stamp in samples[sample_index].image_stamps_ns.items():
@@ -341,11 +340,14 @@ class KeyframeStage:
             to_write = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
             if not cv2.imwrite(str(tmp / image_name), to_write):
                 raise CusfmError(f"cannot write {tmp / image_name}")
-            world_from_base = Rigid3.from_matrix(check_finite(sample_poses[sample_index],
-                                                              "interpolated pose"))
-            world_from_base_all[sample_index] = world_from_base
+            world_from_base_all[sample_index] = Rigid3.from_matrix(
+                check_finite(sample_poses[sample_index], "interpolated pose"))
+            # each image gets the body pose at its own stamp (cameras may trigger apart)
+            world_from_base_at_image = Rigid3.from_matrix(
+                world_from_base.interpolate(np.array([stamp]))[0])
             keyframes.append(Keyframe(str(len(keyframes)), name, stamp, image_name,
-                                      str(sample_index), world_from_base * rig[name].rig_from_cam))
+                                      str(sample_index),
+                                      world_from_base_at_image * rig[name].rig_from_cam))
             written += 1
             if written % 200 == 0:
                 logger.info("keyframes: wrote %d/%d images", written, written + len(wanted))

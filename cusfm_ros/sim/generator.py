@@ -156,7 +156,9 @@ class Simulator:
         self.speed_mps = speed
         self.laps = distance / perimeter
         if self.laps < o.loops - 1e-9:
-            logger.warning("simulate: %d frames at %.1f m/s cover %.0f m, %.2f laps of the "
+            # a partial single lap is ordinary; missing revisits that were asked for is not
+            logger.log(logging.WARNING if o.loops > 1 else logging.INFO,
+                       "simulate: %d frames at %.1f m/s cover %.0f m, %.2f laps of the "
                            "smallest %s route (%.0f m), not the %d asked for; raise --frames "
                            "for revisits", o.frames, speed, distance, self.laps, o.scene,
                            perimeter, o.loops)

@@ -59,8 +59,9 @@ def discover_layout(topics: dict[str, TopicInfo], image_topics: tuple[str, ...] 
     if image_topics:
         for topic in image_topics:
             if topic not in topics:
+                present = by_type(m.IMAGE) + by_type(m.COMPRESSED_IMAGE)
                 raise BagError(f"image topic {topic} is not in the bag (image topics there: "
-                               f"{', '.join(by_type(m.IMAGE) + by_type(m.COMPRESSED_IMAGE)) or 'none'})")
+                               f"{', '.join(present) or 'none'})")
             if topics[topic].msgtype not in m.IMAGE_TYPES:
                 raise BagError(f"{topic} carries {topics[topic].msgtype}, not images")
         candidates = list(image_topics)

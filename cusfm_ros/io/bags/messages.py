@@ -67,20 +67,25 @@ def header_msg(stamp_ns: int, frame_id: str) -> Any:
     return msg("std_msgs/msg/Header", stamp=time_msg(stamp_ns), frame_id=frame_id)
 
 
-def transform_msg(pose: Rigid3) -> Any:
+def _xyz(msgtype: str, values: np.ndarray) -> Any:
+    return msg(msgtype, x=float(values[0]), y=float(values[1]), z=float(values[2]))
+
+
+def _quaternion(pose: Rigid3) -> Any:
     qx, qy, qz, qw = pose.quat_xyzw()
+    return msg("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw)
+
+
+def transform_msg(pose: Rigid3) -> Any:
     return msg("geometry_msgs/msg/Transform",
-               translation=msg("geometry_msgs/msg/Vector3", x=float(pose.translation[0]),
-                               y=float(pose.translation[1]), z=float(pose.translation[2])),
-               rotation=msg("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw))
+               translation=_xyz("geometry_msgs/msg/Vector3", pose.translation),
+               rotation=_quaternion(pose))
 
 
 def pose_msg(pose: Rigid3) -> Any:
-    qx, qy, qz, qw = pose.quat_xyzw()
-    return msg("geometry_msgs/msg/Pose",
-               position=msg("geometry_msgs/msg/Point", x=float(pose.translation[0]),
-                            y=float(pose.translation[1]), z=float(pose.translation[2])),
-               orientation=msg("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw))
+    return msg("geometry_msgs/msg/Pose", position=_xyz("geometry_msgs/msg/Point",
+                                                       pose.translation),
+               orientation=_quaternion(pose))
 
 
 def _rigid(translation: Any, rotation: Any, what: str) -> Rigid3:
@@ -123,12 +128,8 @@ def odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str, odom_from_bo
                pose=msg("geometry_msgs/msg/PoseWithCovariance", pose=pose_msg(odom_from_body),
                         covariance=covariance),
                twist=msg("geometry_msgs/msg/TwistWithCovariance",
-                         twist=msg("geometry_msgs/msg/Twist",
-                                   linear=msg(vector, x=float(linear_mps[0]),
-                                              y=float(linear_mps[1]), z=float(linear_mps[2])),
-                                   angular=msg(vector, x=float(angular_radps[0]),
-                                               y=float(angular_radps[1]),
-                                               z=float(angular_radps[2]))),
+                         twist=msg("geometry_msgs/msg/Twist", linear=_xyz(vector, linear_mps),
+                                   angular=_xyz(vector, angular_radps)),
                          covariance=twist_cov))
 
 

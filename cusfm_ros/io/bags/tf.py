@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.geometry import Rigid3, first_non_increasing
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import BagError, GeometryError
 
@@ -82,8 +82,7 @@ class TransformTree:
             if static is None:
                 samples = self.dynamic[(parent, child)]
                 stamps = np.array([s for s, _ in samples], dtype=np.int64)
-                if np.any(np.diff(stamps) <= 0):
-                    bad = int(np.argmax(np.diff(stamps) <= 0)) + 1
+                if (bad := first_non_increasing(stamps)) is not None:
                     raise BagError(f"/tf {parent} -> {child}: stamps are not increasing at "
                                    f"message {bad}; the recording mixes publishers or clocks")
                 series[(parent, child)] = Trajectory(

@@ -81,8 +81,8 @@ def _read_images_text(path: Path, lines: dict) -> dict[int, ColmapImage]:
     images = {}
     # Image lines come in pairs; the keypoint line may be empty, so read raw lines.
     with open(path, encoding="utf-8") as handle:
-        raw_lines = [(n, l.rstrip("\n")) for n, l in enumerate(handle, start=1)]
-    data = [(n, l) for n, l in raw_lines if not l.startswith("#")]
+        raw_lines = [(n, text.rstrip("\n")) for n, text in enumerate(handle, start=1)]
+    data = [(n, text) for n, text in raw_lines if not text.startswith("#")]
     while data and not data[-1][1].strip():
         data.pop()
     if len(data) % 2:
