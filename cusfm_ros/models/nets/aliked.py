@@ -1,0 +1,257 @@
+"""ALIKED (Zhao et al., 2023) in plain PyTorch, loading the published state dicts strictly.
+
+The network is split the way the runtime uses it:
+- ``AlikedDense``: image (B, 3, H, W) in [0, 1] -> score map (B, 1, H, W) and normalized
+  feature map (B, dim, H, W). Exported to ONNX with dynamic H and W.
+- ``SddhHead``: feature map + keypoints (pixels) -> L2-normalized descriptors (N, dim), the
+  sparse deformable descriptor head. Exported to ONNX with a dynamic keypoint count.
+- ``detect_keypoints``: the differentiable keypoint detection (NMS, threshold / top-k,
+  soft-argmax refinement) in torch, the reference for the numpy version the runtime uses.
+
+The deformable convolution (torchvision's ``deform_conv2d``, unusable beside the CPU torch
+build and poorly exported) is written as one ``grid_sample`` over the nine kernel taps followed
+by a matrix product, which is mathematically the same operation (bilinear sampling, zeros
+outside the image).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+# c1, c2, c3, c4, dim, K (descriptor kernel), M (descriptor sample positions)
+CONFIGS = {
+    "aliked-t16": (8, 16, 32, 64, 64, 3, 16),
+    "aliked-n16": (16, 32, 64, 128, 128, 3, 16),
+    "aliked-n16rot": (16, 32, 64, 128, 128, 3, 16),
+    "aliked-n32": (16, 32, 64, 128, 128, 3, 32),
+}
+STRIDE = 32
+
+
+class DeformConv3x3(nn.Module):
+    """3x3 deformable convolution (no modulation mask), stride 1, padding 1."""
+
+    def __init__(self, in_channels: int, out_channels: int) -> None:
+        super().__init__()
+        self.offset_conv = nn.Conv2d(in_channels, 18, 3, padding=1, bias=True)
+        self.regular_conv = nn.Conv2d(in_channels, out_channels, 3, padding=1, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, c, h, w = x.shape
+        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(x.dtype) / 4.0
+        offset = self.offset_conv(x)
+        offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
+        offset = offset.reshape(b, 9, 2, h, w)  # per tap: (dy, dx), taps in row-major order
+        taps = torch.arange(9, device=x.device)
+        tap_y = (taps // 3 - 1).to(x.dtype).reshape(1, 9, 1, 1)
+        tap_x = (taps % 3 - 1).to(x.dtype).reshape(1, 9, 1, 1)
+        ys = torch.arange(h, device=x.device, dtype=x.dtype).reshape(1, 1, h, 1)
+        xs = torch.arange(w, device=x.device, dtype=x.dtype).reshape(1, 1, 1, w)
+        sample_y = ys + tap_y + offset[:, :, 0]  # (B, 9, H, W) pixel rows
+        sample_x = xs + tap_x + offset[:, :, 1]
+        # grid_sample, align_corners=True: -1 -> pixel 0, +1 -> pixel size-1
+        grid_x = 2.0 * sample_x / (w - 1) - 1.0 if w > 1 else sample_x * 0.0
+        grid_y = 2.0 * sample_y / (h - 1) - 1.0 if h > 1 else sample_y * 0.0
+        grid = torch.stack([grid_x, grid_y], dim=-1).reshape(b, 9 * h, w, 2)
+        sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros",
+                                align_corners=True)  # (B, C, 9H, W)
+        sampled = sampled.reshape(b, c * 9, h, w)  # channel-major, tap-minor like the weight
+        weight = self.regular_conv.weight.reshape(self.regular_conv.out_channels, c * 9, 1, 1)
+        return F.conv2d(sampled, weight)
+
+
+def _conv(in_channels: int, out_channels: int, deformable: bool) -> nn.Module:
+    if deformable:
+        return DeformConv3x3(in_channels, out_channels)
+    return nn.Conv2d(in_channels, out_channels, 3, padding=1, bias=False)
+
+
+class ConvBlock(nn.Module):
+    def __init__(self, in_channels: int, out_channels: int) -> None:
+        super().__init__()
+        self.conv1 = _conv(in_channels, out_channels, False)
+        self.bn1 = nn.BatchNorm2d(out_channels)
+        self.conv2 = _conv(out_channels, out_channels, False)
+        self.bn2 = nn.BatchNorm2d(out_channels)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = F.selu(self.bn1(self.conv1(x)))
+        return F.selu(self.bn2(self.conv2(x)))
+
+
+class ResBlock(nn.Module):
+    def __init__(self, in_channels: int, out_channels: int, deformable: bool) -> None:
+        super().__init__()
+        self.conv1 = _conv(in_channels, out_channels, deformable)
+        self.bn1 = nn.BatchNorm2d(out_channels)
+        self.conv2 = _conv(out_channels, out_channels, deformable)
+        self.bn2 = nn.BatchNorm2d(out_channels)
+        self.downsample = nn.Conv2d(in_channels, out_channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = F.selu(self.bn1(self.conv1(x)))
+        out = self.bn2(self.conv2(out))
+        return F.selu(out + self.downsample(x))
+
+
+class AlikedDense(nn.Module):
+    """Image -> (score map, feature map) at full resolution."""
+
+    def __init__(self, model_name: str = "aliked-n16") -> None:
+        super().__init__()
+        c1, c2, c3, c4, dim, _, _ = CONFIGS[model_name]
+        self.block1 = ConvBlock(3, c1)
+        self.block2 = ResBlock(c1, c2, False)
+        self.block3 = ResBlock(c2, c3, True)
+        self.block4 = ResBlock(c3, c4, True)
+        self.conv1 = nn.Conv2d(c1, dim // 4, 1, bias=False)
+        self.conv2 = nn.Conv2d(c2, dim // 4, 1, bias=False)
+        self.conv3 = nn.Conv2d(c3, dim // 4, 1, bias=False)
+        self.conv4 = nn.Conv2d(dim, dim // 4, 1, bias=False)
+        self.score_head = nn.Sequential(
+            nn.Conv2d(dim, 8, 1, bias=False), nn.SELU(),
+            nn.Conv2d(8, 4, 3, padding=1, bias=False), nn.SELU(),
+            nn.Conv2d(4, 4, 3, padding=1, bias=False), nn.SELU(),
+            nn.Conv2d(4, 1, 3, padding=1, bias=False))
+
+    @staticmethod
+    def _upsample(x: torch.Tensor, factor: int) -> torch.Tensor:
+        return F.interpolate(x, scale_factor=factor, mode="bilinear", align_corners=True)
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h, w = image.shape[-2:]
+        pad_h = (STRIDE - h % STRIDE) % STRIDE
+        pad_w = (STRIDE - w % STRIDE) % STRIDE
+        top, left = pad_h // 2, pad_w // 2
+        image = F.pad(image, (left, pad_w - left, top, pad_h - top), mode="replicate")
+        x1 = self.block1(image)
+        x2 = self.block2(F.avg_pool2d(x1, 2))
+        x3 = self.block3(F.avg_pool2d(x2, 4))
+        x4 = self.block4(F.avg_pool2d(x3, 4))
+        x1 = F.selu(self.conv1(x1))
+        x2 = F.selu(self.conv2(x2))
+        x3 = F.selu(self.conv3(x3))
+        x4 = F.selu(self.conv4(x4))
+        features = torch.cat([x1, self._upsample(x2, 2), self._upsample(x3, 8),
+                              self._upsample(x4, 32)], dim=1)
+        scores = torch.sigmoid(self.score_head(features))
+        features = F.normalize(features, p=2, dim=1)
+        crop = (slice(None), slice(None), slice(top, top + h), slice(left, left + w))
+        return scores[crop], features[crop]
+
+
+class SddhHead(nn.Module):
+    """Sparse deformable descriptor head: descriptors at given keypoints (one image)."""
+
+    def __init__(self, model_name: str = "aliked-n16") -> None:
+        super().__init__()
+        _, _, _, _, dim, kernel, positions = CONFIGS[model_name]
+        self.kernel, self.positions = kernel, positions
+        self.offset_conv = nn.Sequential(
+            nn.Conv2d(dim, 2 * positions, kernel, bias=True), nn.SELU(),
+            nn.Conv2d(2 * positions, 2 * positions, 1, bias=True))
+        self.sf_conv = nn.Conv2d(dim, dim, 1, bias=False)
+        self.agg_weights = nn.Parameter(torch.zeros(positions, dim, dim))
+
+    def forward(self, features: torch.Tensor, keypoints_px: torch.Tensor) -> torch.Tensor:
+        """features (1, C, H, W); keypoints_px (N, 2) as (x, y) -> descriptors (N, C)."""
+        _, c, h, w = features.shape
+        fmap = features[0]
+        n = keypoints_px.shape[0]
+        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(fmap.dtype) / 4.0
+        # K x K patch whose corner is at floor(kpt) - K/2 + 1, clamped inside the map
+        corner = (keypoints_px.floor() - self.kernel / 2 + 1).floor().long()
+        corner_x = corner[:, 0].clamp(0, w - 1 - self.kernel)
+        corner_y = corner[:, 1].clamp(0, h - 1 - self.kernel)
+        steps = torch.arange(self.kernel, device=fmap.device)
+        rows = (corner_y[:, None] + steps[None]).reshape(n, self.kernel, 1)
+        cols = (corner_x[:, None] + steps[None]).reshape(n, 1, self.kernel)
+        flat = (rows * w + cols).reshape(-1)  # (N*K*K,)
+        patches = fmap.reshape(c, h * w)[:, flat].reshape(c, n, self.kernel, self.kernel)
+        patches = patches.permute(1, 0, 2, 3)  # (N, C, K, K)
+        offset = self.offset_conv(patches)
+        offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
+        offset = offset[:, :, 0, 0].reshape(n, 2, self.positions).permute(0, 2, 1)  # (N, M, 2)
+        position = keypoints_px[:, None, :] + offset
+        scale = torch.stack([torch.tensor(w - 1), torch.tensor(h - 1)]).to(fmap.dtype)
+        grid = (2.0 * position / scale - 1.0).reshape(1, n * self.positions, 1, 2)
+        sampled = F.grid_sample(features, grid, mode="bilinear", align_corners=True)
+        sampled = sampled.reshape(c, n, self.positions, 1).permute(1, 0, 2, 3)
+        sampled = F.selu(self.sf_conv(sampled)).squeeze(-1)  # (N, C, M)
+        descriptors = torch.einsum("ncp,pcd->nd", sampled, self.agg_weights)
+        return F.normalize(descriptors, p=2, dim=1)
+
+
+class Aliked(nn.Module):
+    """Whole model with the reference's state-dict layout (for strict loading)."""
+
+    def __init__(self, model_name: str = "aliked-n16") -> None:
+        super().__init__()
+        self.dense = AlikedDense(model_name)
+        self.desc_head = SddhHead(model_name)
+
+    def load_reference_state_dict(self, state_dict: dict) -> None:
+        dense = {k: v for k, v in state_dict.items() if not k.startswith("desc_head.")}
+        head = {k[len("desc_head."):]: v for k, v in state_dict.items()
+                if k.startswith("desc_head.")}
+        self.dense.load_state_dict(dense, strict=True)
+        self.desc_head.load_state_dict(head, strict=True)
+
+
+def simple_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
+    def max_pool(x):
+        return F.max_pool2d(x, kernel_size=2 * radius + 1, stride=1, padding=radius)
+
+    zeros = torch.zeros_like(scores)
+    max_mask = scores == max_pool(scores)
+    for _ in range(2):
+        suppressed = max_pool(max_mask.float()) > 0
+        suppressed_scores = torch.where(suppressed, zeros, scores)
+        new_max = suppressed_scores == max_pool(suppressed_scores)
+        max_mask = max_mask | (new_max & ~suppressed)
+    return torch.where(max_mask, scores, zeros)
+
+
+def detect_keypoints(scores: torch.Tensor, radius: int = 2, threshold: float = 0.2,
+                     max_keypoints: int = -1, limit: int = 20000
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keypoints (N, 2) in pixels and their scores (N,) from a score map (1, 1, H, W).
+
+    ``threshold > 0``: keypoints above it (at most ``max_keypoints`` if > 0, else ``limit``,
+    strongest first); otherwise the ``max_keypoints`` strongest. Sub-pixel positions come from
+    a soft-argmax (temperature 0.1) over the (2r+1)^2 neighbourhood.
+    """
+    _, _, h, w = scores.shape
+    nms = simple_nms(scores, radius)
+    nms[:, :, :radius] = 0
+    nms[:, :, :, :radius] = 0
+    nms[:, :, h - radius:] = 0
+    nms[:, :, :, w - radius:] = 0
+    flat_nms, flat = nms.reshape(-1), scores.reshape(-1)
+    if threshold > 0:
+        mask = flat_nms > threshold
+        if not mask.any():
+            mask = flat_nms > flat.mean()
+        indices = mask.nonzero()[:, 0]
+        cap = max_keypoints if max_keypoints > 0 else limit
+        if len(indices) > cap:
+            order = flat[indices].sort(descending=True)[1][:cap]
+            indices = indices[order]
+    else:
+        indices = torch.topk(flat_nms, max_keypoints).indices
+    kernel = 2 * radius + 1
+    patches = F.unfold(scores, kernel_size=kernel, padding=radius)[0].t()[indices]
+    grid_1d = torch.linspace(-radius, radius, kernel)
+    dy, dx = torch.meshgrid(grid_1d, grid_1d, indexing="ij")
+    grid = torch.stack([dx.reshape(-1), dy.reshape(-1)], dim=1)
+    weights = ((patches - patches.max(dim=1).values[:, None]) / 0.1).exp()
+    residual = weights @ grid / weights.sum(dim=1)[:, None]
+    xy = torch.stack([indices % w, torch.div(indices, w, rounding_mode="trunc")], 1)
+    keypoints = xy.to(scores.dtype) + residual
+    scale = torch.tensor([w - 1, h - 1], dtype=scores.dtype)
+    normalized = keypoints / scale * 2 - 1
+    keypoint_scores = F.grid_sample(scores, normalized.view(1, 1, -1, 2), mode="bilinear",
+                                    align_corners=True)[0, 0, 0]
+    return scale * (normalized + 1) / 2.0, keypoint_scores

@@ -1,0 +1,167 @@
+"""LightGlue (Lindenberger et al., 2023) in plain PyTorch for ALIKED descriptors.
+
+``LightGlueNet.forward`` runs all layers (no early exit, no point pruning) and returns the log
+assignment matrix (B, M+1, N+1); this is the graph exported to ONNX with dynamic keypoint
+counts. Attention is written with explicit matrix products and softmax so that the export is a
+plain graph. Match filtering (mutual best + threshold) lives in numpy at run time
+(``cusfm_ros.core.features.lightglue``) and in ``filter_matches`` here for the torch backend.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def normalize_keypoints(keypoints: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Pixels -> roughly [-1, 1] about the image centre (LightGlue's convention)."""
+    size = torch.tensor([width, height], dtype=keypoints.dtype, device=keypoints.device)
+    return (keypoints - size / 2) / (size.max() / 2)
+
+
+def _rotate_half(x: torch.Tensor) -> torch.Tensor:
+    x = x.unflatten(-1, (-1, 2))
+    x1, x2 = x.unbind(dim=-1)
+    return torch.stack((-x2, x1), dim=-1).flatten(start_dim=-2)
+
+
+def _rotary(freqs: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    return t * freqs[0] + _rotate_half(t) * freqs[1]
+
+
+class FourierPositionalEncoding(nn.Module):
+    def __init__(self, dims_in: int, head_dim: int) -> None:
+        super().__init__()
+        self.Wr = nn.Linear(dims_in, head_dim // 2, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        projected = self.Wr(x)
+        emb = torch.stack([torch.cos(projected), torch.sin(projected)], 0).unsqueeze(-3)
+        return emb.repeat_interleave(2, dim=-1)  # (2, B, 1, N, head_dim)
+
+
+def _ffn(dim: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(2 * dim, 2 * dim), nn.LayerNorm(2 * dim), nn.GELU(),
+                         nn.Linear(2 * dim, dim))
+
+
+def _attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    scale = q.shape[-1] ** -0.5
+    return torch.softmax(q @ k.transpose(-1, -2) * scale, dim=-1) @ v
+
+
+class SelfBlock(nn.Module):
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.Wqkv = nn.Linear(dim, 3 * dim)
+        self.out_proj = nn.Linear(dim, dim)
+        self.ffn = _ffn(dim)
+
+    def forward(self, x: torch.Tensor, encoding: torch.Tensor) -> torch.Tensor:
+        qkv = self.Wqkv(x).unflatten(-1, (self.heads, -1, 3)).transpose(1, 2)
+        q, k, v = qkv[..., 0], qkv[..., 1], qkv[..., 2]
+        context = _attention(_rotary(encoding, q), _rotary(encoding, k), v)
+        message = self.out_proj(context.transpose(1, 2).flatten(start_dim=-2))
+        return x + self.ffn(torch.cat([x, message], -1))
+
+
+class CrossBlock(nn.Module):
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.scale = (dim // heads) ** -0.5
+        self.to_qk = nn.Linear(dim, dim)
+        self.to_v = nn.Linear(dim, dim)
+        self.to_out = nn.Linear(dim, dim)
+        self.ffn = _ffn(dim)
+
+    def forward(self, x0: torch.Tensor, x1: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        def heads(t):
+            return t.unflatten(-1, (self.heads, -1)).transpose(1, 2)
+
+        qk0, qk1 = heads(self.to_qk(x0)) * self.scale**0.5, heads(self.to_qk(x1)) * self.scale**0.5
+        v0, v1 = heads(self.to_v(x0)), heads(self.to_v(x1))
+        sim = qk0 @ qk1.transpose(-1, -2)
+        m0 = torch.softmax(sim, dim=-1) @ v1
+        m1 = torch.softmax(sim.transpose(-1, -2), dim=-1) @ v0
+        m0 = self.to_out(m0.transpose(1, 2).flatten(start_dim=-2))
+        m1 = self.to_out(m1.transpose(1, 2).flatten(start_dim=-2))
+        return (x0 + self.ffn(torch.cat([x0, m0], -1)), x1 + self.ffn(torch.cat([x1, m1], -1)))
+
+
+class TransformerLayer(nn.Module):
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.self_attn = SelfBlock(dim, heads)
+        self.cross_attn = CrossBlock(dim, heads)
+
+    def forward(self, desc0, desc1, encoding0, encoding1):
+        return self.cross_attn(self.self_attn(desc0, encoding0), self.self_attn(desc1, encoding1))
+
+
+class MatchAssignment(nn.Module):
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.matchability = nn.Linear(dim, 1)
+        self.final_proj = nn.Linear(dim, dim)
+
+    def forward(self, desc0: torch.Tensor, desc1: torch.Tensor) -> torch.Tensor:
+        d = desc0.shape[-1]
+        mdesc0 = self.final_proj(desc0) / d**0.25
+        mdesc1 = self.final_proj(desc1) / d**0.25
+        sim = mdesc0 @ mdesc1.transpose(-1, -2)
+        z0, z1 = self.matchability(desc0), self.matchability(desc1)
+        certainties = F.logsigmoid(z0) + F.logsigmoid(z1).transpose(1, 2)
+        scores = (F.log_softmax(sim, 2) + F.log_softmax(sim.transpose(-1, -2), 2).transpose(-1, -2)
+                  + certainties)
+        # append the dustbin row and column without in-place writes (export friendly)
+        dust0 = F.logsigmoid(-z0)  # (B, M, 1)
+        dust1 = F.logsigmoid(-z1).transpose(1, 2)  # (B, 1, N)
+        top = torch.cat([scores, dust0], dim=2)
+        bottom = torch.cat([dust1, torch.zeros_like(dust1[..., :1])], dim=2)
+        return torch.cat([top, bottom], dim=1)
+
+
+class TokenConfidence(nn.Module):
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.token = nn.Sequential(nn.Linear(dim, 1), nn.Sigmoid())
+
+
+class LightGlueNet(nn.Module):
+    def __init__(self, input_dim: int = 128, dim: int = 256, heads: int = 4, layers: int = 9
+                 ) -> None:
+        super().__init__()
+        self.input_proj = nn.Linear(input_dim, dim)
+        self.posenc = FourierPositionalEncoding(2, dim // heads)
+        self.transformers = nn.ModuleList([TransformerLayer(dim, heads) for _ in range(layers)])
+        self.log_assignment = nn.ModuleList([MatchAssignment(dim) for _ in range(layers)])
+        self.token_confidence = nn.ModuleList([TokenConfidence(dim) for _ in range(layers - 1)])
+
+    def load_reference_state_dict(self, state_dict: dict) -> None:
+        # the published file also holds a non-persistent buffer of confidence thresholds
+        state = {k: v for k, v in state_dict.items() if k != "confidence_thresholds"}
+        self.load_state_dict(state, strict=True)
+
+    def forward(self, kpts0: torch.Tensor, kpts1: torch.Tensor, desc0: torch.Tensor,
+                desc1: torch.Tensor) -> torch.Tensor:
+        """Normalized keypoints (B, M|N, 2), descriptors (B, M|N, D) -> log assignment."""
+        desc0, desc1 = self.input_proj(desc0), self.input_proj(desc1)
+        encoding0, encoding1 = self.posenc(kpts0), self.posenc(kpts1)
+        for layer in self.transformers:
+            desc0, desc1 = layer(desc0, desc1, encoding0, encoding1)
+        return self.log_assignment[-1](desc0, desc1)
+
+
+def filter_matches(scores: torch.Tensor, threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mutual best matches above ``threshold`` -> (matches (K, 2), confidences (K,)); B = 1."""
+    inner = scores[0, :-1, :-1]
+    max0, max1 = inner.max(1), inner.max(0)
+    m0, m1 = max0.indices, max1.indices
+    mutual = torch.arange(len(m0)) == m1[m0]
+    confidence = max0.values.exp()
+    valid = mutual & (confidence > threshold)
+    index0 = torch.nonzero(valid)[:, 0]
+    return torch.stack([index0, m0[index0]], 1), confidence[index0]

@@ -1,0 +1,96 @@
+"""The same networks run by PyTorch, for GPUs where onnxruntime has no CUDA provider.
+
+Same interface and same post-processing as the ONNX Runtime classes; imports torch, so it is
+only loaded when ``--backend torch`` is chosen (or ``--device cuda`` without an ORT GPU
+provider).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cusfm_ros.core.features.aliked import MIN_IMAGE_PX, AlikedOptions
+from cusfm_ros.core.features.detection import detect_keypoints
+from cusfm_ros.core.features.lightglue import (LightGlueOptions, filter_matches,
+                                               normalize_keypoints)
+from cusfm_ros.core.features.types import Features, FeatureError, Matches, prepare_image
+from cusfm_ros.errors import ConfigError
+from cusfm_ros.models.build import load_aliked, load_lightglue
+
+
+def _device(name: str):
+    import torch
+
+    if name in ("cuda", "auto") and torch.cuda.is_available():
+        return torch.device("cuda")
+    if name == "cuda":
+        raise ConfigError("--device cuda: torch sees no CUDA GPU")
+    return torch.device("cpu")
+
+
+class TorchAlikedExtractor:
+    name = "aliked"
+    descriptor_dim = 128
+
+    def __init__(self, options: AlikedOptions = AlikedOptions()) -> None:
+        import torch
+
+        self.torch = torch
+        self.options = options
+        self.device = _device(options.device)
+        self.model = load_aliked().to(self.device)
+
+    def config(self) -> dict:
+        return {"name": self.name, "backend": "torch", **self.options.__dict__}
+
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
+        torch = self.torch
+        rgb = prepare_image(image, MIN_IMAGE_PX)
+        h, w = rgb.shape[:2]
+        if self.options.resize_max_px:
+            raise ConfigError("the torch backend does not resize; use the ONNX backend")
+        if mask is not None and np.asarray(mask).shape[:2] != (h, w):
+            raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image is {(h, w)}")
+        with torch.inference_mode():
+            tensor = torch.from_numpy(rgb.transpose(2, 0, 1)[None]).to(self.device)
+            scores, feature_map = self.model.dense(tensor)
+            scores_np = scores[0, 0].float().cpu().numpy()
+            allowed = None if mask is None else np.asarray(mask) > 0
+            keypoints, kp_scores = detect_keypoints(
+                scores_np, self.options.nms_radius, self.options.detection_threshold,
+                self.options.max_keypoints, allowed=allowed)
+            if len(keypoints) == 0:
+                return Features.empty(self.descriptor_dim, (w, h))
+            descriptors = self.model.desc_head(
+                feature_map, torch.from_numpy(keypoints).to(self.device)).cpu().numpy()
+        return Features(keypoints, kp_scores, descriptors.astype(np.float32), (w, h))
+
+
+class TorchLightGlueMatcher:
+    name = "lightglue"
+
+    def __init__(self, options: LightGlueOptions = LightGlueOptions()) -> None:
+        import torch
+
+        self.torch = torch
+        self.options = options
+        self.device = _device(options.device)
+        self.model = load_lightglue().to(self.device)
+
+    def config(self) -> dict:
+        return {"name": self.name, "backend": "torch", **self.options.__dict__}
+
+    def match(self, features0: Features, features1: Features) -> Matches:
+        torch = self.torch
+        if len(features0) < 2 or len(features1) < 2:
+            return Matches.empty()
+        with torch.inference_mode():
+            def tensor(array):
+                return torch.from_numpy(np.ascontiguousarray(array, np.float32))[None].to(
+                    self.device)
+
+            scores = self.model(
+                tensor(normalize_keypoints(features0.keypoints_px, features0.image_size)),
+                tensor(normalize_keypoints(features1.keypoints_px, features1.image_size)),
+                tensor(features0.descriptors), tensor(features1.descriptors))
+        return filter_matches(scores[0].float().cpu().numpy(), self.options.filter_threshold)

