@@ -300,3 +300,33 @@ def test_cli_match_json(tmp_path, capsys, motorcycle):
     assert i.max() < len(data["keypoints0"]) and j.max() < len(data["keypoints1"])
     assert main(["match", str(tmp_path / "0.png"), str(tmp_path / "nope.png")]) == 1
     assert "nope.png: cannot read the image" in capsys.readouterr().err
+
+
+def _torch_backend_agrees(device, aliked, lightglue, motorcycle):
+    from cusfm_ros.core.features.lightglue import LightGlueOptions
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor, TorchLightGlueMatcher
+
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=1024, device=device))
+    mask = np.ones(motorcycle[0].shape[:2], np.uint8)
+    mask[:50] = 0
+    theirs = [extractor.extract(image, mask) for image in motorcycle]
+    ours = [aliked.extract(image, mask) for image in motorcycle]
+    for a, b in zip(ours, theirs):
+        assert len(a) == len(b) and a.keypoints_px[:, 1].min() >= 49.5
+        np.testing.assert_allclose(a.keypoints_px, b.keypoints_px, atol=1e-2)
+        assert (a.descriptors * b.descriptors).sum(1).min() > 0.999
+    matches = TorchLightGlueMatcher(LightGlueOptions(device=device)).match(*theirs)
+    reference = lightglue.match(*ours)
+    common = {tuple(m) for m in matches.indices} & {tuple(m) for m in reference.indices}
+    assert len(common) >= 0.98 * len(reference)
+
+
+def test_torch_backend_equals_onnx_on_cpu(aliked, lightglue, motorcycle):
+    _torch_backend_agrees("cpu", aliked, lightglue, motorcycle)
+
+
+@pytest.mark.gpu
+def test_torch_backend_on_cuda_equals_onnx_on_cpu(aliked, lightglue, motorcycle):
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    _torch_backend_agrees("cuda", aliked, lightglue, motorcycle)

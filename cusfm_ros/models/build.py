@@ -57,9 +57,19 @@ def load_lightglue():
     return model.eval()
 
 
+def _quiet_exporter() -> None:
+    """The exporter's libraries log every rewrite at INFO; keep the user's output readable."""
+    for name in ("onnx_ir", "onnxscript", "torch._dynamo", "torch.export"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    # "torchvision is not installed": expected, we do not use its operators
+    logging.getLogger("torch.onnx").setLevel(logging.ERROR)
+    os.environ.setdefault("TORCH_LOGS", "-all")
+
+
 def _export(module, args: tuple, path: Path, input_names: list[str], output_names: list[str],
             dynamic_shapes) -> None:
     torch = _torch()
+    _quiet_exporter()
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")
         program = torch.onnx.export(module, args, dynamo=True, opset_version=OPSET,

@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 
 from cusfm_ros.core.features.aliked import MIN_IMAGE_PX, AlikedOptions
-from cusfm_ros.core.features.detection import detect_keypoints
 from cusfm_ros.core.features.lightglue import (LightGlueOptions, filter_matches,
                                                normalize_keypoints)
 from cusfm_ros.core.features.types import Features, FeatureError, Matches, prepare_image
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue
+from cusfm_ros.models.nets.aliked import detect_keypoints
 
 
 def _device(name: str):
@@ -51,19 +51,21 @@ class TorchAlikedExtractor:
             raise ConfigError("the torch backend does not resize; use the ONNX backend")
         if mask is not None and np.asarray(mask).shape[:2] != (h, w):
             raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image is {(h, w)}")
+        o = self.options
         with torch.inference_mode():
             tensor = torch.from_numpy(rgb.transpose(2, 0, 1)[None]).to(self.device)
             scores, feature_map = self.model.dense(tensor)
-            scores_np = scores[0, 0].float().cpu().numpy()
-            allowed = None if mask is None else np.asarray(mask) > 0
-            keypoints, kp_scores = detect_keypoints(
-                scores_np, self.options.nms_radius, self.options.detection_threshold,
-                self.options.max_keypoints, allowed=allowed)
+            allowed = None if mask is None else torch.from_numpy(
+                np.asarray(mask) > 0).to(self.device)
+            # detection stays on the device: the same algorithm as the numpy version
+            keypoints, kp_scores = detect_keypoints(scores, o.nms_radius, o.detection_threshold,
+                                                    o.max_keypoints, allowed=allowed)
             if len(keypoints) == 0:
                 return Features.empty(self.descriptor_dim, (w, h))
-            descriptors = self.model.desc_head(
-                feature_map, torch.from_numpy(keypoints).to(self.device)).cpu().numpy()
-        return Features(keypoints, kp_scores, descriptors.astype(np.float32), (w, h))
+            descriptors = self.model.desc_head(feature_map, keypoints)
+        return Features(keypoints.cpu().numpy().astype(np.float32),
+                        kp_scores.cpu().numpy().astype(np.float32),
+                        descriptors.cpu().numpy().astype(np.float32), (w, h))
 
 
 class TorchLightGlueMatcher:

@@ -40,7 +40,7 @@ class DeformConv3x3(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, c, h, w = x.shape
-        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(x.dtype) / 4.0
+        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(x) / 4.0
         offset = self.offset_conv(x)
         offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
         offset = offset.reshape(b, 9, 2, h, w)  # per tap: (dy, dx), taps in row-major order
@@ -160,7 +160,7 @@ class SddhHead(nn.Module):
         _, c, h, w = features.shape
         fmap = features[0]
         n = keypoints_px.shape[0]
-        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(fmap.dtype) / 4.0
+        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(fmap) / 4.0
         # K x K patch whose corner is at floor(kpt) - K/2 + 1, clamped inside the map
         corner = (keypoints_px.floor() - self.kernel / 2 + 1).floor().long()
         corner_x = corner[:, 0].clamp(0, w - 1 - self.kernel)
@@ -175,7 +175,7 @@ class SddhHead(nn.Module):
         offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
         offset = offset[:, :, 0, 0].reshape(n, 2, self.positions).permute(0, 2, 1)  # (N, M, 2)
         position = keypoints_px[:, None, :] + offset
-        scale = torch.stack([torch.tensor(w - 1), torch.tensor(h - 1)]).to(fmap.dtype)
+        scale = torch.stack([torch.tensor(w - 1), torch.tensor(h - 1)]).to(fmap)
         grid = (2.0 * position / scale - 1.0).reshape(1, n * self.positions, 1, 2)
         sampled = F.grid_sample(features, grid, mode="bilinear", align_corners=True)
         sampled = sampled.reshape(c, n, self.positions, 1).permute(1, 0, 2, 3)
@@ -215,8 +215,8 @@ def simple_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 def detect_keypoints(scores: torch.Tensor, radius: int = 2, threshold: float = 0.2,
-                     max_keypoints: int = -1, limit: int = 20000
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+                     max_keypoints: int = -1, limit: int = 20000,
+                     allowed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Keypoints (N, 2) in pixels and their scores (N,) from a score map (1, 1, H, W).
 
     ``threshold > 0``: keypoints above it (at most ``max_keypoints`` if > 0, else ``limit``,
@@ -229,6 +229,8 @@ def detect_keypoints(scores: torch.Tensor, radius: int = 2, threshold: float = 0
     nms[:, :, :, :radius] = 0
     nms[:, :, h - radius:] = 0
     nms[:, :, :, w - radius:] = 0
+    if allowed is not None:  # (H, W) bool: no keypoint where False
+        nms = torch.where(allowed[None, None], nms, torch.zeros_like(nms))
     flat_nms, flat = nms.reshape(-1), scores.reshape(-1)
     if threshold > 0:
         mask = flat_nms > threshold
@@ -240,17 +242,17 @@ def detect_keypoints(scores: torch.Tensor, radius: int = 2, threshold: float = 0
             order = flat[indices].sort(descending=True)[1][:cap]
             indices = indices[order]
     else:
-        indices = torch.topk(flat_nms, max_keypoints).indices
+        indices = torch.topk(flat_nms, min(max_keypoints, flat_nms.numel())).indices
     kernel = 2 * radius + 1
     patches = F.unfold(scores, kernel_size=kernel, padding=radius)[0].t()[indices]
-    grid_1d = torch.linspace(-radius, radius, kernel)
+    grid_1d = torch.linspace(-radius, radius, kernel, device=scores.device)
     dy, dx = torch.meshgrid(grid_1d, grid_1d, indexing="ij")
     grid = torch.stack([dx.reshape(-1), dy.reshape(-1)], dim=1)
     weights = ((patches - patches.max(dim=1).values[:, None]) / 0.1).exp()
     residual = weights @ grid / weights.sum(dim=1)[:, None]
     xy = torch.stack([indices % w, torch.div(indices, w, rounding_mode="trunc")], 1)
     keypoints = xy.to(scores.dtype) + residual
-    scale = torch.tensor([w - 1, h - 1], dtype=scores.dtype)
+    scale = torch.tensor([w - 1, h - 1], dtype=scores.dtype, device=scores.device)
     normalized = keypoints / scale * 2 - 1
     keypoint_scores = F.grid_sample(scores, normalized.view(1, 1, -1, 2), mode="bilinear",
                                     align_corners=True)[0, 0, 0]

@@ -1,0 +1,75 @@
+"""GPU timing of the torch backend (ALIKED-n16 at 1241x376, LightGlue 2x1024) on a CUDA device.
+
+Usage (on a GPU machine): python bench/gpu_features.py
+Prints median milliseconds (CUDA-synchronized) for the networks alone and end to end (with the
+numpy keypoint detection and host transfers), fp32 and fp16 autocast; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def main() -> None:
+    import torch
+
+    from cusfm_ros.core.features.aliked import AlikedOptions
+    from cusfm_ros.models.nets.aliked import detect_keypoints as torch_detect
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor, TorchLightGlueMatcher
+
+    assert torch.cuda.is_available(), "needs a CUDA GPU"
+    print(f"device: {torch.cuda.get_device_name()} torch {torch.__version__}")
+    import skimage.data
+    import cv2
+    image = cv2.resize(skimage.data.stereo_motorcycle()[0], (1241, 376))
+    other = cv2.resize(skimage.data.stereo_motorcycle()[1], (1241, 376))
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=1024, detection_threshold=-1,
+                                                   device="cuda"))
+    matcher = TorchLightGlueMatcher()
+
+    def median_ms(fn, repeats=30):
+        for _ in range(5):
+            fn()
+        torch.cuda.synchronize()
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            fn()
+            torch.cuda.synchronize()
+            times.append(time.perf_counter() - start)
+        return 1000 * float(np.median(times))
+
+    tensor = torch.from_numpy(image.astype(np.float32).transpose(2, 0, 1)[None] / 255).cuda()
+    batch = tensor.repeat(16, 1, 1, 1)
+    rows = []
+    with torch.inference_mode():
+        rows.append(("ALIKED dense net, batch 1",
+                     median_ms(lambda: extractor.model.dense(tensor))))
+        rows.append(("ALIKED dense net, batch 16 (per image)",
+                     median_ms(lambda: extractor.model.dense(batch)) / 16))
+
+        def aliked_gpu_only():
+            scores, fmap = extractor.model.dense(tensor)
+            k, _ = torch_detect(scores, 2, -1, 1024)
+            extractor.model.desc_head(fmap, k)
+
+        rows.append(("ALIKED net + detection + descriptors (on GPU)",
+                     median_ms(aliked_gpu_only)))
+        rows.append(("ALIKED end to end (extract())", median_ms(lambda: extractor.extract(image))))
+        f0, f1 = extractor.extract(image), extractor.extract(other)
+        rows.append(("LightGlue 2x1024 fp32, all layers",
+                     median_ms(lambda: matcher.match(f0, f1))))
+        with torch.autocast("cuda", dtype=torch.float16):
+            rows.append(("LightGlue 2x1024 fp16 autocast",
+                         median_ms(lambda: matcher.match(f0, f1))))
+        m32 = matcher.match(f0, f1)
+    print(f"keypoints {len(f0)}/{len(f1)}, matches {len(m32)}")
+    print("| stage (H100, torch backend) | median ms |\n|---|---|")
+    for name, ms in rows:
+        print(f"| {name} | {ms:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
