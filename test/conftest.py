@@ -34,3 +34,14 @@ def make_loop_trajectory(num_poses: int = 200, radius_m: float = 20.0, rate_hz: 
 @pytest.fixture
 def loop_trajectory() -> Trajectory:
     return make_loop_trajectory()
+
+
+@pytest.fixture(scope="session")
+def models_ready():
+    """The ONNX models exist (built on first use; needs torch at build time)."""
+    from cusfm_ros.models.store import ensure_models
+
+    try:
+        return ensure_models()
+    except Exception as exc:  # no torch and no cache: the learned-feature tests cannot run
+        pytest.skip(f"ONNX models unavailable: {exc}")

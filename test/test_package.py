@@ -83,11 +83,10 @@ def test_cusfm_help_and_version():
 
 @pytest.mark.parametrize("preset", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)
 def test_config_presets_load_into_options(preset):
-    from cusfm_ros.pipeline.keyframes import KeyframeOptions
-    from cusfm_ros.pipeline.options import load_config, options_from_dict
-    config = load_config(preset)
-    assert set(config) <= {"keyframes"}
-    options_from_dict(KeyframeOptions, config.get("keyframes"), str(preset))
+    from cusfm_ros.pipeline.mapper import MapperOptions
+    from cusfm_ros.pipeline.options import load_config
+    options = MapperOptions.from_dict(load_config(preset), str(preset))
+    assert options.keyframes.min_translation_m > 0
 
 
 def test_unknown_option_keys_are_rejected(tmp_path):

@@ -25,21 +25,28 @@ def read_image(path: str):
 
 
 def add_feature_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--features", choices=EXTRACTORS, default="aliked")
+    """Feature options; unset ones keep the config file's value, then the defaults."""
+    parser.add_argument("--features", choices=EXTRACTORS, default=None,
+                        help="default aliked")
     parser.add_argument("--matcher", choices=MATCHERS, default=None,
                         help="default: lightglue for aliked, knn for sift")
-    parser.add_argument("--max-keypoints", type=int, default=2048)
-    parser.add_argument("--resize-max-px", type=int, default=0)
-    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
-    parser.add_argument("--backend", choices=("auto", "onnx", "torch"), default="auto")
+    parser.add_argument("--max-keypoints", type=int, default=None, help="default 2048")
+    parser.add_argument("--resize-max-px", type=int, default=None)
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None)
+    parser.add_argument("--backend", choices=("auto", "onnx", "torch"), default=None)
     parser.add_argument("--model-dir", default=None)
 
 
-def feature_options(args: argparse.Namespace) -> FeatureOptions:
-    matcher = args.matcher or ("lightglue" if args.features == "aliked" else "knn")
-    return FeatureOptions(features=args.features, matcher=matcher,
-                          max_keypoints=args.max_keypoints, resize_max_px=args.resize_max_px,
-                          device=args.device, backend=args.backend, model_dir=args.model_dir)
+def feature_options(args: argparse.Namespace, base: FeatureOptions | None = None
+                    ) -> FeatureOptions:
+    values = dict((base or FeatureOptions()).__dict__)
+    overrides = {"features": args.features, "matcher": args.matcher,
+                 "max_keypoints": args.max_keypoints, "resize_max_px": args.resize_max_px,
+                 "device": args.device, "backend": args.backend, "model_dir": args.model_dir}
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    if args.matcher is None and args.features is not None:
+        values["matcher"] = "lightglue" if values["features"] == "aliked" else "knn"
+    return FeatureOptions(**values)
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:

@@ -1,0 +1,138 @@
+"""Benchmark vocabulary construction and loop detection.
+
+Usage: python bench/loops.py [--descriptors 2000000] [--frames-street 260 --frames-indoor 130]
+Prints: vocabulary build time, multi-process vs single-threaded k-means; peak memory of BIRCH
+(streamed) vs plain k-means for N descriptors; loop precision/recall on simulator sequences with
+two laps. Asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import multiprocessing
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def synthetic_descriptors(count: int, seed: int = 0, clusters: int = 20000) -> np.ndarray:
+    """Unit 128-d descriptors around many cluster centres (a stand-in for a large map)."""
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(clusters, 128)).astype(np.float32)
+    out = np.empty((count, 128), np.float32)
+    for start in range(0, count, 200000):
+        n = min(200000, count - start)
+        block = centres[rng.integers(0, clusters, n)] + 0.15 * rng.normal(size=(n, 128))
+        out[start:start + n] = block / np.linalg.norm(block, axis=1, keepdims=True)
+    return out
+
+
+def _peak_child(queue, method: str, count: int) -> None:
+    from cusfm_ros.core.retrieval.birch import BirchOptions, BirchVocabularyBuilder
+    from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions, VocabularyTree
+
+    started = time.perf_counter()
+    options = VocabularyOptions(10, 4, workers=1)
+    if method == "kmeans":  # all descriptors in memory at once
+        VocabularyTree.build(synthetic_descriptors(count), options)
+    else:  # streamed in chunks, as from disk
+        builder = BirchVocabularyBuilder(BirchOptions(threshold=0.6), options)
+        chunk = 100000
+        for start in range(0, count, chunk):
+            builder.insert(synthetic_descriptors(min(chunk, count - start), seed=start + 1))
+        entries = len(builder.clustering_features()[0])
+        builder.solve()
+        method += f" ({entries} CF entries)"
+    queue.put((method, time.perf_counter() - started,
+               resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
+
+
+def memory_table(count: int) -> None:
+    print(f"\n| vocabulary from {count} descriptors | seconds | peak RSS MB |\n|---|---|---|")
+    context = multiprocessing.get_context("spawn")
+    for method in ("kmeans", "birch"):
+        queue = context.Queue()
+        process = context.Process(target=_peak_child, args=(queue, method, count))
+        process.start()
+        name, seconds, peak = queue.get()
+        process.join()
+        print(f"| {name} | {seconds:.1f} | {peak:.0f} |")
+
+
+def speed_table() -> None:
+    from threadpoolctl import threadpool_limits
+
+    from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions, VocabularyTree
+    descriptors = synthetic_descriptors(200000)
+    print("\n| k-means vocabulary (200k descriptors, 10^4 words) | seconds |\n|---|---|")
+    with threadpool_limits(1):
+        start = time.perf_counter()
+        VocabularyTree.build(descriptors, VocabularyOptions(10, 4, workers=1))
+        single = time.perf_counter() - start
+    start = time.perf_counter()
+    VocabularyTree.build(descriptors, VocabularyOptions(10, 4, workers=0))
+    parallel = time.perf_counter() - start
+    print(f"| single-threaded | {single:.1f} |\n| all cores (2 here), subtrees in parallel | "
+          f"{parallel:.1f} ({single / parallel:.1f}x) |")
+
+
+def loop_table(frames_street: int, frames_indoor: int) -> None:
+    from cusfm_ros.core.retrieval.evaluation import loop_accuracy, true_loop
+    from cusfm_ros.io.extrinsics_yaml import read_extrinsics
+    from cusfm_ros.io.frames_meta import read_frames_meta
+    from cusfm_ros.io.tum import read_tum
+    from cusfm_ros.pipeline.mapper import Mapper, MapperOptions
+    from cusfm_ros.pipeline.keyframes import KeyframeOptions
+    from cusfm_ros.sim.generator import SimulationOptions, Simulator
+
+    print("\n| sequence | keyframe images | loops | precision (5 m, 30 deg) | recall | "
+          "loops > 3 m or 45 deg apart | loops stage s |\n|---|---|---|---|---|---|---|")
+    for scene, frames in (("street", frames_street), ("indoor", frames_indoor)):
+        with tempfile.TemporaryDirectory() as tmp:
+            sim = Simulator(SimulationOptions(scene=scene, rig="mono", frames=frames, loops=2,
+                                              image_width=480, image_height=360)).generate(
+                Path(tmp) / "sim")
+            run = Path(tmp) / "run"
+            options = MapperOptions(keyframes=KeyframeOptions(min_translation_m=0.3))
+            report = Mapper(options).solve(sim / "bag", run)
+            gt = read_tum(sim / "ground_truth.tum")
+            extrinsics = read_extrinsics(sim / "extrinsics_gt.yaml")
+            keyframes = read_frames_meta(run / "keyframes" / "frames_meta.json")
+            poses, stamps = {}, {}
+            for k in keyframes.keyframes:
+                i = int(np.argmin(np.abs(gt.stamps_ns - k.stamp_ns)))
+                poses[k.image_name] = (gt.world_from_body[i]
+                                       @ extrinsics.cameras[k.camera_name].rig_from_cam.matrix())
+                stamps[k.image_name] = int(gt.stamps_ns[i])
+            loops = json.loads((run / "loops" / "loops.json").read_text())["loops"]
+            pairs = [(x["query_image"], x["match_image"]) for x in loops]
+            accuracy = loop_accuracy(pairs, poses, stamps, options.loops.exclude_within_s)
+            far = sum(not true_loop(poses[q], poses[m], 3.0, 45.0) for q, m in pairs)
+            print(f"| {scene} mono, 2 laps, {frames} frames | {len(poses)} | {len(loops)} | "
+                  f"{accuracy.precision:.3f} | {accuracy.recall:.3f} | {far} | "
+                  f"{report['stages']['loops']['seconds']:.1f} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--descriptors", type=int, default=2000000)
+    parser.add_argument("--frames-street", type=int, default=260)
+    parser.add_argument("--frames-indoor", type=int, default=130)
+    parser.add_argument("--skip", nargs="*", default=[], choices=("speed", "memory", "loops"))
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    if "speed" not in args.skip:
+        speed_table()
+    if "memory" not in args.skip:
+        memory_table(args.descriptors)
+    if "loops" not in args.skip:
+        loop_table(args.frames_street, args.frames_indoor)
+
+
+if __name__ == "__main__":
+    main()

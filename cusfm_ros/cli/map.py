@@ -1,0 +1,51 @@
+"""``cusfm map BAG --out RUN_DIR``: run the mapper's stages (this release: keyframes, features,
+vocabulary, loops)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from cusfm_ros.cli.keyframes import add_bag_arguments, keyframe_options
+from cusfm_ros.cli.match import add_feature_arguments, feature_options
+from cusfm_ros.pipeline.mapper import STAGES, Mapper, MapperOptions
+from cusfm_ros.pipeline.options import load_config, options_from_dict
+from cusfm_ros.pipeline.retrieval import VocabularyStageOptions
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser("map", help="run the mapping stages on a bag")
+    parser.add_argument("bag")
+    parser.add_argument("--out", required=True, metavar="RUN_DIR")
+    parser.add_argument("--steps", nargs="+", choices=STAGES, default=None,
+                        help="stages to run (default: all)")
+    for stage in STAGES:
+        parser.add_argument(f"--skip-{stage}", action="store_true")
+    parser.add_argument("--overwrite", action="store_true", help="redo stages already done")
+    parser.add_argument("--vocab-method", choices=("kmeans", "birch"), default=None)
+    add_bag_arguments(parser)
+    add_feature_arguments(parser)
+    parser.set_defaults(run=run)
+    return parser
+
+
+def mapper_options(args: argparse.Namespace) -> MapperOptions:
+    config = load_config(args.config) if args.config else {}
+    where = args.config or "command line"
+    base = MapperOptions.from_dict(config, where)  # validates every section
+    vocabulary = dict(config.get("vocabulary") or {})
+    if args.vocab_method:
+        vocabulary["method"] = args.vocab_method
+    return MapperOptions(
+        keyframes=keyframe_options(args), features=feature_options(args, base.features),
+        vocabulary=options_from_dict(VocabularyStageOptions, vocabulary, where),
+        loops=base.loops)
+
+
+def run(args: argparse.Namespace) -> int:
+    steps = [s for s in (args.steps or STAGES) if not getattr(args, f"skip_{s}")]
+    report = Mapper(mapper_options(args)).solve(args.bag, args.out, steps, args.overwrite)
+    for stage, entry in report["stages"].items():
+        print(f"{stage:<11} {json.dumps(entry)}")
+    print(f"report: {args.out}/report.json")
+    return 0

@@ -1,0 +1,1 @@
+"""Place recognition: vocabulary trees (k-means, BIRCH), the image database, loop detection."""

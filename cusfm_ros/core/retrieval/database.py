@@ -1,0 +1,66 @@
+"""Bag-of-words image database: TF-IDF vectors per keyframe and an inverted index.
+
+Vectors are L2-normalized TF-IDF; the database is a sparse (images x words) matrix whose
+columns are the inverted index (word -> images), so a query is one sparse product.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
+
+
+@dataclass
+class Candidate:
+    image: str
+    score: float
+
+
+@dataclass
+class ImageDatabase:
+    vocabulary: VocabularyTree
+    names: list[str] = field(default_factory=list)
+    stamps_ns: list[int] = field(default_factory=list)
+    positions_m: list[np.ndarray | None] = field(default_factory=list)
+    _rows: list[sp.csr_matrix] = field(default_factory=list)
+    _matrix: sp.csr_matrix | None = None
+
+    def bow(self, descriptors: np.ndarray) -> sp.csr_matrix:
+        """L2-normalized TF-IDF vector (1, W) of an image's descriptors."""
+        words = self.vocabulary.num_words
+        if len(descriptors) == 0:
+            return sp.csr_matrix((1, words), dtype=np.float32)
+        counts = np.bincount(self.vocabulary.quantize(descriptors), minlength=words)
+        vector = counts.astype(np.float32) / counts.sum() * self.vocabulary.idf
+        norm = np.linalg.norm(vector)
+        return sp.csr_matrix(vector / norm if norm > 0 else vector)
+
+    def add(self, name: str, descriptors: np.ndarray, stamp_ns: int,
+            position_m: np.ndarray | None = None) -> None:
+        self.names.append(name)
+        self.stamps_ns.append(int(stamp_ns))
+        self.positions_m.append(position_m)
+        self._rows.append(self.bow(descriptors))
+        self._matrix = None
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def query(self, descriptors: np.ndarray, stamp_ns: int, top_k: int = 5,
+              exclude_within_s: float = 10.0, min_score: float = 0.0) -> list[Candidate]:
+        """Most similar images (cosine of TF-IDF vectors), excluding those taken within
+        ``exclude_within_s`` of ``stamp_ns`` (the query's own neighbourhood in time)."""
+        if not self.names:
+            return []
+        if self._matrix is None:
+            self._matrix = sp.vstack(self._rows).tocsr()
+        scores = (self._matrix @ self.bow(descriptors).T).toarray().ravel()
+        window = np.abs(np.asarray(self.stamps_ns) - stamp_ns) <= exclude_within_s * 1e9
+        scores[window] = -1.0
+        order = np.argsort(-scores, kind="stable")[:top_k]
+        return [Candidate(self.names[i], float(scores[i])) for i in order
+                if scores[i] > max(min_score, 0.0)]

@@ -1,0 +1,74 @@
+"""Geometric verification of loop candidates: matches -> essential matrix RANSAC (OpenCV USAC)
+on calibrated bearings, so it works for every camera model through ``unproject``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cusfm_ros.core.cameras import CameraBase
+from cusfm_ros.core.features.types import Features, Matches
+from cusfm_ros.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class LoopOptions:
+    top_k: int = 5
+    """Candidates per query from the image database."""
+    exclude_within_s: float = 15.0
+    """Images closer in time than this are neighbours, not loops."""
+    min_score: float = 0.02
+    """Minimum BoW similarity of a candidate."""
+    min_inliers: int = 50
+    min_inlier_ratio: float = 0.5
+    """Of the matches; wrong loops rarely pass both on textured scenes."""
+    ransac_threshold_px: float = 1.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.top_k < 1 or self.min_inliers < 5 or not 0 <= self.min_inlier_ratio <= 1:
+            raise ConfigError("loops: top_k >= 1, min_inliers >= 5, 0 <= min_inlier_ratio <= 1")
+
+
+@dataclass
+class Verification:
+    accepted: bool
+    inliers: int
+    matches: int
+    rotation: np.ndarray | None = None
+    """cam_match_from_cam_query rotation (3, 3)."""
+    translation_direction: np.ndarray | None = None
+    """Unit translation of cam_match_from_cam_query (scale unknown from two views)."""
+
+
+def _focal_px(camera: CameraBase) -> float:
+    return float(getattr(camera, "fx", None) or getattr(camera, "focal_px", 1.0))
+
+
+def verify_pair(features0: Features, features1: Features, matches: Matches,
+                camera0: CameraBase, camera1: CameraBase, options: LoopOptions) -> Verification:
+    """Essential-matrix RANSAC between two calibrated views; accept on enough inliers."""
+    if len(matches) < max(options.min_inliers, 5):
+        return Verification(False, 0, len(matches))
+    rays0 = camera0.unproject(features0.keypoints_px[matches.indices[:, 0]])
+    rays1 = camera1.unproject(features1.keypoints_px[matches.indices[:, 1]])
+    front = (rays0[:, 2] > 0.1) & (rays1[:, 2] > 0.1)  # normalized coordinates need z > 0
+    if front.sum() < options.min_inliers:
+        return Verification(False, 0, len(matches))
+    x0 = rays0[front, :2] / rays0[front, 2:]
+    x1 = rays1[front, :2] / rays1[front, 2:]
+    cv2.setRNGSeed(options.seed)
+    threshold = options.ransac_threshold_px / np.sqrt(_focal_px(camera0) * _focal_px(camera1))
+    essential, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.USAC_MAGSAC,
+                                           prob=0.9999, threshold=threshold)
+    if essential is None or essential.shape != (3, 3):
+        return Verification(False, 0, len(matches))
+    count, rotation, translation, mask = cv2.recoverPose(essential, x0, x1, np.eye(3),
+                                                         mask=mask)
+    inliers = int(count)
+    accepted = (inliers >= options.min_inliers
+                and inliers >= options.min_inlier_ratio * len(matches))
+    return Verification(accepted, inliers, len(matches), rotation,
+                        translation.ravel() / max(np.linalg.norm(translation), 1e-12))

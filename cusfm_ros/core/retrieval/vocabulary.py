@@ -1,0 +1,234 @@
+"""Vocabulary tree (hierarchical k-means, Nister & Stewenius 2006) with TF-IDF weights.
+
+Built from the dataset's own descriptors (paper section 3.2): recursive k-means with
+branching factor K and depth L, k-means++ seeding, the first level's subtrees built in parallel
+processes. Points may carry weights (BIRCH's clustering features, see ``birch.py``), so the same
+builder refines an incrementally collected CF tree into the same structure.
+
+Storage: flat arrays — ``centroids (M, D)``, ``children (M, K)`` (-1 = none), ``words (M,)``
+(-1 for inner nodes); node 0 is the root. Saved as a versioned ``.npz``.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import logging
+import multiprocessing
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cusfm_ros.errors import ConfigError, CusfmError
+
+logger = logging.getLogger(__name__)
+FORMAT_VERSION = 1
+
+
+class VocabularyError(CusfmError):
+    pass
+
+
+@dataclass(frozen=True)
+class VocabularyOptions:
+    branching: int = 10
+    depth: int = 4
+    """K^L leaves at most: 10^4 words by default."""
+    kmeans_iterations: int = 20
+    seed: int = 0
+    workers: int = 0
+    """Processes for the first-level subtrees; 0 = all cores, 1 = single-threaded."""
+
+    def __post_init__(self) -> None:
+        if self.branching < 2 or self.depth < 1:
+            raise ConfigError("vocabulary: branching must be >= 2 and depth >= 1")
+
+
+def weighted_kmeans(points: np.ndarray, weights: np.ndarray, k: int, iterations: int,
+                    seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(k, D) centres and (N,) labels; scikit-learn's KMeans with k-means++ and weights."""
+    from sklearn.cluster import KMeans
+
+    model = KMeans(n_clusters=k, init="k-means++", n_init=1, max_iter=iterations,
+                   random_state=seed, algorithm="lloyd")
+    labels = model.fit_predict(points, sample_weight=weights)
+    return model.cluster_centers_.astype(np.float32), labels
+
+
+@dataclass
+class _Subtree:
+    centroids: list = field(default_factory=list)
+    children: list = field(default_factory=list)
+    leaf: list = field(default_factory=list)
+
+
+def _build_subtree(points: np.ndarray, weights: np.ndarray, centroid: np.ndarray, level: int,
+                   options: VocabularyOptions, seed: int) -> _Subtree:
+    """Nodes of the subtree below (and including) one node, in depth-first order; children
+    indices are local to the subtree."""
+    tree = _Subtree()
+
+    def grow(pts, wts, centre, lvl, node_seed) -> int:
+        index = len(tree.centroids)
+        tree.centroids.append(centre)
+        tree.children.append([-1] * options.branching)
+        tree.leaf.append(True)
+        distinct = len(np.unique(pts, axis=0)) if len(pts) <= 4 * options.branching else len(pts)
+        if lvl >= options.depth or distinct < options.branching:
+            return index
+        centres, labels = weighted_kmeans(pts, wts, options.branching,
+                                          options.kmeans_iterations, node_seed)
+        tree.leaf[index] = False
+        for child in range(options.branching):
+            members = labels == child
+            if not members.any():
+                continue
+            tree.children[index][child] = grow(pts[members], wts[members], centres[child],
+                                               lvl + 1, node_seed * 31 + child + 1)
+        return index
+
+    grow(points, weights, centroid, level, seed)
+    return tree
+
+
+def _init_worker() -> None:
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)  # one process per subtree already fills the cores
+
+
+def _subtree_task(args):
+    return _build_subtree(*args)
+
+
+class VocabularyTree:
+    def __init__(self, centroids: np.ndarray, children: np.ndarray, words: np.ndarray,
+                 idf: np.ndarray, options: VocabularyOptions) -> None:
+        self.centroids = centroids
+        self.children = children
+        self.words = words
+        self.idf = idf
+        self.options = options
+
+    @property
+    def num_words(self) -> int:
+        return int(self.words.max()) + 1
+
+    @property
+    def dim(self) -> int:
+        return self.centroids.shape[1]
+
+    # ------------------------------------------------------------------------------ build
+    @classmethod
+    def build(cls, descriptors: np.ndarray, options: VocabularyOptions = VocabularyOptions(),
+              weights: np.ndarray | None = None,
+              documents: list[np.ndarray] | None = None) -> VocabularyTree:
+        """Hierarchical k-means over (weighted) descriptors; ``documents`` (descriptor sets
+        per image) give the IDF weights, else every word gets IDF 1."""
+        points = np.ascontiguousarray(descriptors, dtype=np.float32)
+        if points.ndim != 2 or len(points) == 0:
+            raise VocabularyError("no descriptors to build a vocabulary from")
+        if not np.all(np.isfinite(points)):
+            raise VocabularyError("descriptors contain NaN or inf")
+        weights = np.ones(len(points)) if weights is None else np.asarray(weights, float)
+        k, depth = options.branching, options.depth
+        needed = k ** depth
+        if len(points) < needed:
+            shrunk = max(1, int(np.floor(np.log(max(len(points), 1)) / np.log(k))))
+            logger.warning("vocabulary: %d descriptors are too few for %d^%d words; using "
+                           "depth %d", len(points), k, depth, shrunk)
+            if len(points) < k:
+                raise VocabularyError(f"need at least {k} descriptors for branching {k}, "
+                                      f"got {len(points)}")
+            options = VocabularyOptions(k, shrunk, options.kmeans_iterations, options.seed,
+                                        options.workers)
+        # level 1 in this process, the K subtrees below it in parallel
+        centres, labels = weighted_kmeans(points, weights, k, options.kmeans_iterations,
+                                          options.seed)
+        tasks = [(points[labels == c], weights[labels == c], centres[c], 1, options,
+                  options.seed * 1000 + c + 1) for c in range(k) if np.any(labels == c)]
+        workers = options.workers or os.cpu_count() or 1
+        if workers > 1 and len(tasks) > 1:
+            with concurrent.futures.ProcessPoolExecutor(
+                    min(workers, len(tasks)), mp_context=multiprocessing.get_context("fork"),
+                    initializer=_init_worker) as pool:
+                subtrees = list(pool.map(_subtree_task, tasks))
+        else:
+            subtrees = [_subtree_task(task) for task in tasks]
+        centroids = [np.zeros(points.shape[1], np.float32)]
+        children = [[-1] * k]
+        leaf = [False]
+        for slot, subtree in zip([c for c in range(k) if np.any(labels == c)], subtrees):
+            offset = len(centroids)
+            children[0][slot] = offset
+            centroids.extend(subtree.centroids)
+            children.extend([[c + offset if c >= 0 else -1 for c in row]
+                             for row in subtree.children])
+            leaf.extend(subtree.leaf)
+        leaf = np.array(leaf)
+        words = np.full(len(leaf), -1, np.int64)
+        words[leaf] = np.arange(leaf.sum())
+        tree = cls(np.array(centroids, np.float32), np.array(children, np.int64), words,
+                   np.ones(int(leaf.sum()), np.float32), options)
+        if documents is not None:
+            tree.set_idf(documents)
+        return tree
+
+    def set_idf(self, documents: list[np.ndarray]) -> None:
+        """IDF = log(N / n_w) over the images (descriptor sets) the vocabulary is used for."""
+        counts = np.zeros(self.num_words)
+        for descriptors in documents:
+            if len(descriptors):
+                counts[np.unique(self.quantize(descriptors))] += 1
+        self.idf = np.log(max(len(documents), 1) / np.maximum(counts, 1)).astype(np.float32)
+
+    # --------------------------------------------------------------------------- quantize
+    def quantize(self, descriptors: np.ndarray) -> np.ndarray:
+        """Word id (N,) of each descriptor: greedy descent through the tree (vectorized)."""
+        points = np.asarray(descriptors, dtype=np.float32)
+        if points.ndim != 2 or (len(points) and points.shape[1] != self.dim):
+            raise VocabularyError(f"descriptors have dimension {points.shape[-1]} but the "
+                                  f"vocabulary was built for {self.dim}; rebuild it for these "
+                                  "features")
+        node = np.zeros(len(points), np.int64)
+        while True:
+            kids = self.children[node]  # (N, K)
+            inner = (kids >= 0).any(axis=1)
+            if not inner.any():
+                break
+            rows = np.nonzero(inner)[0]
+            candidates = kids[rows]
+            centres = self.centroids[np.maximum(candidates, 0)]  # (n, K, D)
+            distance = ((centres - points[rows, None, :]) ** 2).sum(-1)
+            distance[candidates < 0] = np.inf
+            node[rows] = candidates[np.arange(len(rows)), distance.argmin(1)]
+        return self.words[node]
+
+    # --------------------------------------------------------------------------- storage
+    def save(self, path: str | os.PathLike) -> None:
+        from cusfm_ros.core.retrieval.storage import save_arrays
+
+        o = self.options
+        save_arrays(path, version=np.array(FORMAT_VERSION), centroids=self.centroids,
+                    children=self.children, words=self.words, idf=self.idf,
+                    options=np.array([o.branching, o.depth, o.kmeans_iterations, o.seed]))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> VocabularyTree:
+        path = Path(path)
+        if not path.is_file():
+            raise VocabularyError(f"{path}: no vocabulary file; build one with "
+                                  "`cusfm vocab build RUN_DIR`")
+        try:
+            data = np.load(path)
+            version = int(data["version"])
+            arrays = {k: data[k] for k in ("centroids", "children", "words", "idf", "options")}
+        except (OSError, KeyError, ValueError) as exc:
+            raise VocabularyError(f"{path}: not a vocabulary file ({exc})") from None
+        if version != FORMAT_VERSION:
+            raise VocabularyError(f"{path}: vocabulary format {version}, this release reads "
+                                  f"{FORMAT_VERSION}; rebuild it")
+        b, d, it, seed = (int(v) for v in arrays["options"])
+        return cls(arrays["centroids"], arrays["children"], arrays["words"], arrays["idf"],
+                   VocabularyOptions(b, d, it, seed))

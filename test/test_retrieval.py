@@ -1,0 +1,145 @@
+"""Vocabulary trees (k-means and BIRCH), the image database, and loop detection end to end."""
+
+import json
+
+import numpy as np
+import pytest
+
+from cusfm_ros.core.retrieval.birch import BirchOptions, BirchVocabularyBuilder
+from cusfm_ros.core.retrieval.database import ImageDatabase
+from cusfm_ros.core.retrieval.vocabulary import (VocabularyError, VocabularyOptions,
+                                                 VocabularyTree)
+
+SMALL = VocabularyOptions(branching=4, depth=3, seed=1, workers=1)
+
+
+def clustered(rng, clusters=64, per_cluster=40, dim=32, spread=0.02):
+    centres = rng.normal(size=(clusters, dim))
+    labels = np.repeat(np.arange(clusters), per_cluster)
+    points = centres[labels] + spread * rng.normal(size=(len(labels), dim))
+    return points.astype(np.float32), labels
+
+
+def test_tree_build_quantize_save_load(tmp_path, rng):
+    points, labels = clustered(rng, clusters=16, per_cluster=100)
+    tree = VocabularyTree.build(points, SMALL, documents=[points[:100], points[100:]])
+    assert 16 <= tree.num_words <= 4 ** 3
+    words = tree.quantize(points)
+    # well separated clusters are never mixed in one word
+    for word in np.unique(words):
+        assert len(np.unique(labels[words == word])) == 1
+    tree.save(tmp_path / "v.npz")
+    again = VocabularyTree.load(tmp_path / "v.npz")
+    np.testing.assert_array_equal(again.quantize(points), words)
+    np.testing.assert_array_equal(again.idf, tree.idf)
+    assert again.options.branching == 4 and again.options.depth == 3
+
+
+def test_parallel_build_equals_single_threaded(rng):
+    points, _ = clustered(rng)
+    single = VocabularyTree.build(points, SMALL)
+    parallel = VocabularyTree.build(points, VocabularyOptions(4, 3, seed=1, workers=2))
+    np.testing.assert_array_equal(single.quantize(points), parallel.quantize(points))
+    np.testing.assert_allclose(single.centroids, parallel.centroids, atol=1e-5)
+
+
+def test_bad_vocabulary_input(rng, tmp_path, caplog):
+    points, _ = clustered(rng, clusters=4, per_cluster=5)
+    tree = VocabularyTree.build(points, VocabularyOptions(4, 5, workers=1))  # 20 < 4^5
+    assert "too few" in caplog.text and tree.options.depth == 2
+    with pytest.raises(VocabularyError, match="dimension 16 but the vocabulary was built for 32"):
+        tree.quantize(np.zeros((3, 16), np.float32))
+    with pytest.raises(VocabularyError, match="at least 4 descriptors"):
+        VocabularyTree.build(points[:3], SMALL)
+    with pytest.raises(VocabularyError, match="NaN"):
+        VocabularyTree.build(np.full((50, 32), np.nan, np.float32), SMALL)
+    with pytest.raises(VocabularyError, match="no vocabulary file"):
+        VocabularyTree.load(tmp_path / "missing.npz")
+
+
+def test_birch_clustering_features_sum_to_the_data(rng):
+    points, labels = clustered(rng, clusters=30, per_cluster=200)
+    builder = BirchVocabularyBuilder(BirchOptions(threshold=0.2, chunk_size=777), SMALL)
+    builder.insert(points[:3000])
+    builder.insert(points[3000:])
+    n, ls, ss = builder.clustering_features()
+    assert n.sum() == len(points) == builder.count
+    np.testing.assert_allclose(ls.sum(0), points.astype(np.float64).sum(0), atol=1e-6)
+    np.testing.assert_allclose(ss.sum(), (points.astype(np.float64) ** 2).sum(), rtol=1e-9)
+    assert len(n) < len(points) / 20  # memory follows the CF entries, not the descriptors
+    tree = builder.solve()  # 30 CF entries: too few for 4^3 words, the tree shrinks to 4^2
+    assert tree.options.depth == 2
+    words = tree.quantize(points)
+    assert len(np.unique(words)) >= 12
+    for cluster in range(30):  # each tight cluster is one CF entry, hence one word
+        assert len(np.unique(words[labels == cluster])) == 1
+
+
+def test_birch_extend_and_persist(tmp_path, rng):
+    points, _ = clustered(rng, clusters=20, per_cluster=100)
+    builder = BirchVocabularyBuilder(BirchOptions(threshold=0.2), SMALL)
+    builder.insert(points)
+    builder.save(tmp_path / "state.npz")
+    restored = BirchVocabularyBuilder.load(tmp_path / "state.npz")
+    more, _ = clustered(np.random.default_rng(99), clusters=10, per_cluster=50)
+    tree = restored.extend(more, documents=[points, more])
+    n, ls, _ = restored.clustering_features()
+    assert n.sum() == len(points) + len(more)
+    np.testing.assert_allclose(ls.sum(0), np.concatenate([points, more]).astype(float).sum(0),
+                               atol=1e-6)
+    assert tree.idf.max() > 0
+
+
+def test_database_ranks_same_place_first_and_excludes_neighbours(rng):
+    points, labels = clustered(rng)
+    tree = VocabularyTree.build(points, SMALL)
+    database = ImageDatabase(tree)
+    places = [points[labels % 8 == p] for p in range(8)]
+    for index, descriptors in enumerate(places):
+        database.add(f"img{index}", descriptors, stamp_ns=index * 10**9 * 100)
+    query = places[5][::2] + 0.001
+    result = database.query(query, stamp_ns=10**15, top_k=3)
+    assert result[0].image == "img5" and result[0].score > result[1].score
+    near = database.query(query, stamp_ns=5 * 10**11, top_k=3, exclude_within_s=10)
+    assert all(c.image != "img5" for c in near)
+
+
+@pytest.mark.usefixtures("models_ready")
+def test_loop_detection_on_a_two_lap_sequence(tmp_path):
+    """Street-free indoor loop driven twice; loops are checked against exact ground truth."""
+    from cusfm_ros.cli.main import main
+    from cusfm_ros.core.retrieval.evaluation import loop_accuracy, true_loop
+    from cusfm_ros.io.extrinsics_yaml import read_extrinsics
+    from cusfm_ros.io.frames_meta import read_frames_meta
+    from cusfm_ros.io.tum import read_tum
+    from cusfm_ros.sim.generator import SimulationOptions, Simulator
+
+    sim = Simulator(SimulationOptions(scene="indoor", rig="mono", frames=120, loops=2,
+                                      image_width=320, image_height=240)).generate(
+        tmp_path / "sim")
+    run = tmp_path / "run"
+    assert main(["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
+                 "--max-keypoints", "1024"]) == 0
+    report = json.loads((run / "report.json").read_text())
+    assert set(report["stages"]) == {"keyframes", "features", "vocabulary", "loops"}
+    loops = json.loads((run / "loops" / "loops.json").read_text())["loops"]
+    assert {"query", "match", "query_stamp_ns", "match_stamp_ns", "inliers", "score"} <= set(
+        loops[0])
+    gt, extrinsics = read_tum(sim / "ground_truth.tum"), read_extrinsics(
+        sim / "extrinsics_gt.yaml")
+    poses, stamps = {}, {}
+    for keyframe in read_frames_meta(run / "keyframes" / "frames_meta.json").keyframes:
+        i = int(np.argmin(np.abs(gt.stamps_ns - keyframe.stamp_ns)))
+        poses[keyframe.image_name] = (gt.world_from_body[i] @ extrinsics.cameras[
+            keyframe.camera_name].rig_from_cam.matrix())
+        stamps[keyframe.image_name] = int(gt.stamps_ns[i])
+    pairs = [(x["query_image"], x["match_image"]) for x in loops]
+    accuracy = loop_accuracy(pairs, poses, stamps, exclude_within_s=15.0)
+    assert accuracy.precision >= 0.98 and accuracy.recall >= 0.8, accuracy
+    # not one loop between places that do not overlap
+    assert all(true_loop(poses[q], poses[m], 3.0, 45.0) for q, m in pairs)
+    # resumable: a second run reuses every stage
+    assert main(["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
+                 "--max-keypoints", "1024"]) == 0
+    again = json.loads((run / "report.json").read_text())["stages"]
+    assert again["keyframes"]["reused"] and again["features"]["extracted"] == 0
