@@ -9,7 +9,6 @@ two laps. Asserts nothing.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import multiprocessing
 import resource
@@ -82,16 +81,13 @@ def speed_table() -> None:
 
 
 def loop_table(frames_street: int, frames_indoor: int) -> None:
-    from cusfm_ros.core.retrieval.evaluation import loop_accuracy, true_loop
-    from cusfm_ros.io.extrinsics_yaml import read_extrinsics
-    from cusfm_ros.io.frames_meta import read_frames_meta
-    from cusfm_ros.io.tum import read_tum
-    from cusfm_ros.pipeline.mapper import Mapper, MapperOptions
     from cusfm_ros.pipeline.keyframes import KeyframeOptions
+    from cusfm_ros.pipeline.mapper import Mapper, MapperOptions
     from cusfm_ros.sim.generator import SimulationOptions, Simulator
+    from cusfm_ros.sim.loop_truth import evaluate_loops
 
     print("\n| sequence | keyframe images | loops | precision (5 m, 30 deg) | recall | "
-          "loops > 3 m or 45 deg apart | loops stage s |\n|---|---|---|---|---|---|---|")
+          "loops > 10 m or 60 deg apart | loops stage s |\n|---|---|---|---|---|---|---|")
     for scene, frames in (("street", frames_street), ("indoor", frames_indoor)):
         with tempfile.TemporaryDirectory() as tmp:
             sim = Simulator(SimulationOptions(scene=scene, rig="mono", frames=frames, loops=2,
@@ -100,21 +96,10 @@ def loop_table(frames_street: int, frames_indoor: int) -> None:
             run = Path(tmp) / "run"
             options = MapperOptions(keyframes=KeyframeOptions(min_translation_m=0.3))
             report = Mapper(options).solve(sim / "bag", run)
-            gt = read_tum(sim / "ground_truth.tum")
-            extrinsics = read_extrinsics(sim / "extrinsics_gt.yaml")
-            keyframes = read_frames_meta(run / "keyframes" / "frames_meta.json")
-            poses, stamps = {}, {}
-            for k in keyframes.keyframes:
-                i = int(np.argmin(np.abs(gt.stamps_ns - k.stamp_ns)))
-                poses[k.image_name] = (gt.world_from_body[i]
-                                       @ extrinsics.cameras[k.camera_name].rig_from_cam.matrix())
-                stamps[k.image_name] = int(gt.stamps_ns[i])
-            loops = json.loads((run / "loops" / "loops.json").read_text())["loops"]
-            pairs = [(x["query_image"], x["match_image"]) for x in loops]
-            accuracy = loop_accuracy(pairs, poses, stamps, options.loops.exclude_within_s)
-            far = sum(not true_loop(poses[q], poses[m], 3.0, 45.0) for q, m in pairs)
-            print(f"| {scene} mono, 2 laps, {frames} frames | {len(poses)} | {len(loops)} | "
-                  f"{accuracy.precision:.3f} | {accuracy.recall:.3f} | {far} | "
+            accuracy, wrong, count = evaluate_loops(sim, run, options.loops)
+            print(f"| {scene} mono, 2 laps, {frames} frames | "
+                  f"{report['stages']['keyframes']['keyframes']} | {count} | "
+                  f"{accuracy.precision:.3f} | {accuracy.recall:.3f} | {wrong} | "
                   f"{report['stages']['loops']['seconds']:.1f} |")
 
 

@@ -162,6 +162,20 @@ class VocabularyStage:
         return StageResult(seconds, {"words": tree.num_words, "descriptors": int(len(stacked))})
 
 
+def travelled_path_m(keyframes: KeyframeSet, frames: list) -> np.ndarray:
+    """Odometry path length (metres) at each frame: cumulative distance between the rig
+    positions of consecutive rig samples, in time order."""
+    samples = {}
+    for keyframe in frames:
+        samples.setdefault(keyframe.sample_id, (keyframe.stamp_ns,
+                                                keyframes.world_from_rig(keyframe).translation))
+    order = sorted(samples, key=lambda s: samples[s][0])
+    positions = np.array([samples[s][1] for s in order])
+    steps = np.r_[0.0, np.linalg.norm(np.diff(positions, axis=0), axis=1)]
+    along = dict(zip(order, np.cumsum(steps)))
+    return np.array([along[k.sample_id] for k in frames])
+
+
 class LoopStage:
     def __init__(self, options: LoopOptions = LoopOptions(),
                  features: FeatureOptions = FeatureOptions()) -> None:
@@ -187,10 +201,12 @@ class LoopStage:
                 database.add(keyframe.image_name, features[keyframe.image_name].descriptors,
                              keyframe.stamp_ns)
             by_name = {k.image_name: k for k in frames}
+            path_m = travelled_path_m(keyframes, frames)
             for index, query in enumerate(frames):
-                candidates = database.query(features[query.image_name].descriptors,
-                                            query.stamp_ns, o.top_k, o.exclude_within_s,
-                                            o.min_score)
+                candidates = database.query(
+                    features[query.image_name].descriptors, query.stamp_ns, o.top_k,
+                    o.exclude_within_s, o.min_score,
+                    exclude=np.abs(path_m - path_m[index]) < o.exclude_within_path_m)
                 for candidate in candidates:
                     match = by_name[candidate.image]
                     if match.stamp_ns >= query.stamp_ns:

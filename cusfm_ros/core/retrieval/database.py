@@ -51,9 +51,11 @@ class ImageDatabase:
         return len(self.names)
 
     def query(self, descriptors: np.ndarray, stamp_ns: int, top_k: int = 5,
-              exclude_within_s: float = 10.0, min_score: float = 0.0) -> list[Candidate]:
+              exclude_within_s: float = 10.0, min_score: float = 0.0,
+              exclude: np.ndarray | None = None) -> list[Candidate]:
         """Most similar images (cosine of TF-IDF vectors), excluding those taken within
-        ``exclude_within_s`` of ``stamp_ns`` (the query's own neighbourhood in time)."""
+        ``exclude_within_s`` of ``stamp_ns`` and those flagged in ``exclude`` (bool per image,
+        e.g. neighbours along the travelled path)."""
         if not self.names:
             return []
         if self._matrix is None:
@@ -61,6 +63,8 @@ class ImageDatabase:
         scores = (self._matrix @ self.bow(descriptors).T).toarray().ravel()
         window = np.abs(np.asarray(self.stamps_ns) - stamp_ns) <= exclude_within_s * 1e9
         scores[window] = -1.0
+        if exclude is not None:
+            scores[np.asarray(exclude, bool)] = -1.0
         order = np.argsort(-scores, kind="stable")[:top_k]
         return [Candidate(self.names[i], float(scores[i])) for i in order
                 if scores[i] > max(min_score, 0.0)]

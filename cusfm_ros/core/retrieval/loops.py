@@ -17,8 +17,11 @@ from cusfm_ros.errors import ConfigError
 class LoopOptions:
     top_k: int = 5
     """Candidates per query from the image database."""
-    exclude_within_s: float = 15.0
+    exclude_within_s: float = 5.0
     """Images closer in time than this are neighbours, not loops."""
+    exclude_within_path_m: float = 10.0
+    """Images fewer metres apart along the travelled path (odometry) are neighbours too: a loop
+    means leaving a place and coming back, whatever the speed."""
     min_score: float = 0.02
     """Minimum BoW similarity of a candidate."""
     min_inliers: int = 50
