@@ -9,6 +9,8 @@ from cusfm_ros.core.retrieval.birch import BirchOptions, BirchVocabularyBuilder
 from cusfm_ros.core.retrieval.database import ImageDatabase
 from cusfm_ros.core.retrieval.vocabulary import (VocabularyError, VocabularyOptions,
                                                  VocabularyTree)
+from cusfm_ros.io.vocabulary_file import (load_birch, load_vocabulary, save_birch,
+                                          save_vocabulary)
 
 SMALL = VocabularyOptions(branching=4, depth=3, seed=1, workers=1)
 
@@ -28,8 +30,8 @@ def test_tree_build_quantize_save_load(tmp_path, rng):
     # well separated clusters are never mixed in one word
     for word in np.unique(words):
         assert len(np.unique(labels[words == word])) == 1
-    tree.save(tmp_path / "v.npz")
-    again = VocabularyTree.load(tmp_path / "v.npz")
+    save_vocabulary(tmp_path / "v.npz", tree)
+    again = load_vocabulary(tmp_path / "v.npz")
     np.testing.assert_array_equal(again.quantize(points), words)
     np.testing.assert_array_equal(again.idf, tree.idf)
     assert again.options.branching == 4 and again.options.depth == 3
@@ -54,7 +56,7 @@ def test_bad_vocabulary_input(rng, tmp_path, caplog):
     with pytest.raises(VocabularyError, match="NaN"):
         VocabularyTree.build(np.full((50, 32), np.nan, np.float32), SMALL)
     with pytest.raises(VocabularyError, match="no vocabulary file"):
-        VocabularyTree.load(tmp_path / "missing.npz")
+        load_vocabulary(tmp_path / "missing.npz")
 
 
 def test_birch_clustering_features_sum_to_the_data(rng):
@@ -79,8 +81,8 @@ def test_birch_extend_and_persist(tmp_path, rng):
     points, _ = clustered(rng, clusters=20, per_cluster=100)
     builder = BirchVocabularyBuilder(BirchOptions(threshold=0.2), SMALL)
     builder.insert(points)
-    builder.save(tmp_path / "state.npz")
-    restored = BirchVocabularyBuilder.load(tmp_path / "state.npz")
+    save_birch(tmp_path / "state.npz", builder)
+    restored = load_birch(tmp_path / "state.npz")
     more, _ = clustered(np.random.default_rng(99), clusters=10, per_cluster=50)
     tree = restored.extend(more, documents=[points, more])
     n, ls, _ = restored.clustering_features()

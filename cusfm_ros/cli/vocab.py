@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from cusfm_ros.cli.match import add_feature_arguments, feature_options
-from cusfm_ros.core.retrieval.birch import BirchVocabularyBuilder
+from cusfm_ros.io.vocabulary_file import load_birch, save_birch, save_vocabulary
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.pipeline.retrieval import (VocabularyStage, VocabularyStageOptions,
                                           open_store, vocabulary_path)
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.source:
         raise ConfigError("vocab extend needs --from OTHER_RUN_DIR (the new session's run)")
     out = vocabulary_path(args.run_dir)
-    builder = BirchVocabularyBuilder.load(out.with_name("birch_state.npz"))
+    builder = load_birch(out.with_name("birch_state.npz"))
     documents = []
     for run in (args.run_dir, args.source):
         with open_store(run, features) as store:
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
         for name in store.feature_names():
             builder.insert(store.features(name).descriptors)
     tree = builder.solve(documents)
-    tree.save(out)
-    builder.save(out.with_name("birch_state.npz"))
+    save_vocabulary(out, tree)
+    save_birch(out.with_name("birch_state.npz"), builder)
     print(f"vocabulary: {builder.count} descriptors in the CF tree -> {tree.num_words} words")
     return 0

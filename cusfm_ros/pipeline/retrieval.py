@@ -29,6 +29,7 @@ from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.frames_meta import read_frames_meta
+from cusfm_ros.io.vocabulary_file import load_vocabulary, save_birch, save_vocabulary
 from cusfm_ros.pipeline.features import FeatureOptions, make_extractor, make_matcher
 from cusfm_ros.pipeline.options import options_as_dict
 
@@ -108,7 +109,7 @@ class VocabularyStageOptions:
     depth: int = 4
     max_descriptors: int = 300000
     """Descriptors sampled (seeded) from the run to train the tree."""
-    birch_threshold: float = 0.5
+    birch_threshold: float = 0.35
     seed: int = 0
     workers: int = 0
 
@@ -155,8 +156,8 @@ class VocabularyStage:
             for document in documents:  # streamed: memory follows the CF entries
                 builder.insert(document)
             tree = builder.solve(documents)
-            builder.save(out.with_name("birch_state.npz"))
-        tree.save(out)
+            save_birch(out.with_name("birch_state.npz"), builder)
+        save_vocabulary(out, tree)
         seconds = time.perf_counter() - started
         logger.info("vocabulary: %d words in %.1f s -> %s", tree.num_words, seconds, out)
         return StageResult(seconds, {"words": tree.num_words, "descriptors": int(len(stacked))})
@@ -190,7 +191,7 @@ class LoopStage:
             return StageResult(0.0, {"loops": len(json.loads(out.read_text())["loops"])})
         o = self.options
         keyframes = load_keyframes(run_dir)
-        vocabulary = VocabularyTree.load(vocabulary_path(run_dir))
+        vocabulary = load_vocabulary(vocabulary_path(run_dir))
         matcher = make_matcher(self.features)
         frames = sorted(keyframes.keyframes, key=lambda k: (k.stamp_ns, k.camera_name))
         loops, verified = [], 0

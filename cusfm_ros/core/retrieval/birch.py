@@ -10,10 +10,7 @@ for map growth and rebuilds the (cheap) refinement.
 
 from __future__ import annotations
 
-import os
-import pickle
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -24,7 +21,7 @@ from cusfm_ros.errors import ConfigError
 
 @dataclass(frozen=True)
 class BirchOptions:
-    threshold: float = 0.5
+    threshold: float = 0.35
     """Largest radius of a leaf entry (descriptor units; ALIKED/RootSIFT are unit-norm)."""
     node_capacity: int = 50
     """Entries per CF node before it splits (BIRCH's branching factor)."""
@@ -85,17 +82,3 @@ class BirchVocabularyBuilder:
         """Stream new descriptors in and rebuild the vocabulary from the grown CF tree."""
         self.insert(descriptors)
         return self.solve(documents)
-
-    def save(self, path: str | os.PathLike) -> None:
-        """The CF tree, to extend later (our own pickle beside the vocabulary)."""
-        from cusfm_ros.core.retrieval.storage import save_arrays
-
-        save_arrays(path, state=np.frombuffer(pickle.dumps(self), dtype=np.uint8))
-
-    @classmethod
-    def load(cls, path: str | os.PathLike) -> BirchVocabularyBuilder:
-        path = Path(path)
-        if not path.is_file():
-            raise VocabularyError(f"{path}: no BIRCH state to extend; build the vocabulary "
-                                  "with --method birch first")
-        return pickle.loads(np.load(path)["state"].tobytes())  # noqa: S301 - our own file

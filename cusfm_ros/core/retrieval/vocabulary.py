@@ -6,7 +6,8 @@ processes. Points may carry weights (BIRCH's clustering features, see ``birch.py
 builder refines an incrementally collected CF tree into the same structure.
 
 Storage: flat arrays — ``centroids (M, D)``, ``children (M, K)`` (-1 = none), ``words (M,)``
-(-1 for inner nodes); node 0 is the root. Saved as a versioned ``.npz``.
+(-1 for inner nodes); node 0 is the root. ``cusfm_ros.io.vocabulary_file`` saves them as a
+versioned ``.npz``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ import logging
 import multiprocessing
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -205,30 +205,24 @@ class VocabularyTree:
             node[rows] = candidates[np.arange(len(rows)), distance.argmin(1)]
         return self.words[node]
 
-    # --------------------------------------------------------------------------- storage
-    def save(self, path: str | os.PathLike) -> None:
-        from cusfm_ros.core.retrieval.storage import save_arrays
-
+    # ----------------------------------------------------------------------- (de)serialize
+    def to_arrays(self) -> dict[str, np.ndarray]:
         o = self.options
-        save_arrays(path, version=np.array(FORMAT_VERSION), centroids=self.centroids,
-                    children=self.children, words=self.words, idf=self.idf,
-                    options=np.array([o.branching, o.depth, o.kmeans_iterations, o.seed]))
+        return {"version": np.array(FORMAT_VERSION), "centroids": self.centroids,
+                "children": self.children, "words": self.words, "idf": self.idf,
+                "options": np.array([o.branching, o.depth, o.kmeans_iterations, o.seed])}
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> VocabularyTree:
-        path = Path(path)
-        if not path.is_file():
-            raise VocabularyError(f"{path}: no vocabulary file; build one with "
-                                  "`cusfm vocab build RUN_DIR`")
+    def from_arrays(cls, arrays, where: str = "vocabulary") -> VocabularyTree:
         try:
-            data = np.load(path)
-            version = int(data["version"])
-            arrays = {k: data[k] for k in ("centroids", "children", "words", "idf", "options")}
-        except (OSError, KeyError, ValueError) as exc:
-            raise VocabularyError(f"{path}: not a vocabulary file ({exc})") from None
+            version = int(arrays["version"])
+            fields = {k: arrays[k] for k in ("centroids", "children", "words", "idf",
+                                             "options")}
+        except (KeyError, ValueError) as exc:
+            raise VocabularyError(f"{where}: not a vocabulary ({exc})") from None
         if version != FORMAT_VERSION:
-            raise VocabularyError(f"{path}: vocabulary format {version}, this release reads "
+            raise VocabularyError(f"{where}: vocabulary format {version}, this release reads "
                                   f"{FORMAT_VERSION}; rebuild it")
-        b, d, it, seed = (int(v) for v in arrays["options"])
-        return cls(arrays["centroids"], arrays["children"], arrays["words"], arrays["idf"],
+        b, d, it, seed = (int(v) for v in fields["options"])
+        return cls(fields["centroids"], fields["children"], fields["words"], fields["idf"],
                    VocabularyOptions(b, d, it, seed))
