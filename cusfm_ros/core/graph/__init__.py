@@ -1,0 +1,1 @@
+"""View graph: which image pairs to match (pose-graph priors), pose graph optimization."""
