@@ -107,28 +107,39 @@ def test_database_ranks_same_place_first_and_excludes_neighbours(rng):
 
 
 @pytest.mark.usefixtures("models_ready")
-def test_loop_detection_on_a_two_lap_sequence(tmp_path):
-    """Street-free indoor loop driven twice; loops are checked against exact ground truth."""
+def test_loops_and_pose_graph_on_a_two_lap_stereo_sequence(tmp_path):
+    """An indoor loop driven twice with drifting odometry: loops are checked against exact
+    ground truth, and the pose graph must remove most of the drift."""
     from cusfm_ros.cli.main import main
+    from cusfm_ros.core.evaluation import absolute_trajectory_error
+    from cusfm_ros.io.tum import read_tum
     from cusfm_ros.sim.generator import SimulationOptions, Simulator
     from cusfm_ros.sim.loop_truth import evaluate_loops
 
-    sim = Simulator(SimulationOptions(scene="indoor", rig="mono", frames=120, loops=2,
-                                      image_width=320, image_height=240)).generate(
-        tmp_path / "sim")
+    sim = Simulator(SimulationOptions(scene="indoor", rig="stereo", frames=120, loops=2,
+                                      image_width=256, image_height=192,
+                                      odom_yaw_drift_deg_per_m=0.3, odom_scale_error=0.02)
+                    ).generate(tmp_path / "sim")
     run = tmp_path / "run"
-    assert main(["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
-                 "--max-keypoints", "1024"]) == 0
+    args = ["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
+            "--max-keypoints", "512"]
+    assert main(args) == 0
     report = json.loads((run / "report.json").read_text())
-    assert set(report["stages"]) == {"keyframes", "features", "vocabulary", "loops"}
+    assert set(report["stages"]) == {"keyframes", "features", "vocabulary", "loops", "pairs",
+                                     "pose_graph"}
     loops = json.loads((run / "loops" / "loops.json").read_text())["loops"]
     assert {"query", "match", "query_stamp_ns", "match_stamp_ns", "inliers", "score"} <= set(
         loops[0])
     accuracy, wrong, count = evaluate_loops(sim, run)
     assert count > 50 and wrong == 0  # not one loop between places that do not overlap
     assert accuracy.precision >= 0.98 and accuracy.recall >= 0.8, accuracy
-    # resumable: a second run reuses every stage
-    assert main(["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
-                 "--max-keypoints", "1024"]) == 0
+    pairs = (run / "pairs" / "pairs.txt").read_text().splitlines()
+    assert len(pairs) == report["stages"]["pairs"]["pairs"] and len(pairs[0].split()) == 2
+    truth = read_tum(sim / "ground_truth.tum")
+    raw = absolute_trajectory_error(truth, read_tum(run / "keyframes" / "initial_poses.tum"))
+    refined = absolute_trajectory_error(truth, read_tum(run / "pose_graph" / "poses.tum"))
+    assert refined.rmse < 0.5 * raw.rmse, (raw.rmse, refined.rmse)
+    # resumable: a second run reuses the expensive stages
+    assert main(args) == 0
     again = json.loads((run / "report.json").read_text())["stages"]
     assert again["keyframes"]["reused"] and again["features"]["extracted"] == 0

@@ -1,5 +1,5 @@
 """``cusfm map BAG --out RUN_DIR``: run the mapper's stages (this release: keyframes, features,
-vocabulary, loops)."""
+vocabulary, loops, pairs, pose_graph)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import json
 
 from cusfm_ros.cli.keyframes import add_bag_arguments, keyframe_options
 from cusfm_ros.cli.match import add_feature_arguments, feature_options
+from cusfm_ros.core.graph.pairs import PairOptions
 from cusfm_ros.pipeline.mapper import STAGES, Mapper, MapperOptions
 from cusfm_ros.pipeline.options import load_config, options_from_dict
 from cusfm_ros.pipeline.retrieval import VocabularyStageOptions
@@ -23,6 +24,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         parser.add_argument(f"--skip-{stage}", action="store_true")
     parser.add_argument("--overwrite", action="store_true", help="redo stages already done")
     parser.add_argument("--vocab-method", choices=("kmeans", "birch"), default=None)
+    parser.add_argument("--retrieval", choices=("view_graph", "radius"), default=None,
+                        help="pair selection (default view_graph)")
     add_bag_arguments(parser)
     add_feature_arguments(parser)
     parser.set_defaults(run=run)
@@ -36,10 +39,14 @@ def mapper_options(args: argparse.Namespace) -> MapperOptions:
     vocabulary = dict(config.get("vocabulary") or {})
     if args.vocab_method:
         vocabulary["method"] = args.vocab_method
+    pairs = dict(config.get("pairs") or {})
+    if args.retrieval:
+        pairs["mode"] = args.retrieval
     return MapperOptions(
         keyframes=keyframe_options(args), features=feature_options(args, base.features),
         vocabulary=options_from_dict(VocabularyStageOptions, vocabulary, where),
-        loops=base.loops)
+        loops=base.loops, pairs=options_from_dict(PairOptions, pairs, where),
+        pose_graph=base.pose_graph)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -2,7 +2,7 @@
 
 Stages run in order and talk through files in RUN_DIR, so any subset can be (re)run with
 ``steps``. Each stage's seconds and counts go to ``RUN_DIR/report.json`` (merged across runs).
-This release's stages: keyframes, features, vocabulary, loops.
+This release's stages: keyframes, features, vocabulary, loops, pairs, pose_graph.
 """
 
 from __future__ import annotations
@@ -15,17 +15,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cusfm_ros import __version__
+from cusfm_ros.core.graph.pairs import PairOptions
+from cusfm_ros.core.graph.pose_graph import PoseGraphOptions
 from cusfm_ros.core.retrieval.loops import LoopOptions
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.pipeline.features import FeatureOptions
 from cusfm_ros.pipeline.keyframes import KeyframeOptions, KeyframeStage
 from cusfm_ros.pipeline.options import options_as_dict, options_from_dict
+from cusfm_ros.pipeline.pose_graph import PairStage, PoseGraphStage
 from cusfm_ros.pipeline.retrieval import (FeatureStage, LoopStage, VocabularyStage,
                                           VocabularyStageOptions)
 
 logger = logging.getLogger(__name__)
-STAGES = ("keyframes", "features", "vocabulary", "loops")
+STAGES = ("keyframes", "features", "vocabulary", "loops", "pairs", "pose_graph")
 
 
 @dataclass(frozen=True)
@@ -34,6 +37,8 @@ class MapperOptions:
     features: FeatureOptions = field(default_factory=FeatureOptions)
     vocabulary: VocabularyStageOptions = field(default_factory=VocabularyStageOptions)
     loops: LoopOptions = field(default_factory=LoopOptions)
+    pairs: PairOptions = field(default_factory=PairOptions)
+    pose_graph: PoseGraphOptions = field(default_factory=PoseGraphOptions)
 
     @classmethod
     def from_dict(cls, data: dict, where: str) -> MapperOptions:
@@ -42,7 +47,8 @@ class MapperOptions:
             raise ConfigError(f"{where}: unknown section(s) {unknown} (known: "
                               f"{', '.join(STAGES)})")
         types = {"keyframes": KeyframeOptions, "features": FeatureOptions,
-                 "vocabulary": VocabularyStageOptions, "loops": LoopOptions}
+                 "vocabulary": VocabularyStageOptions, "loops": LoopOptions,
+                 "pairs": PairOptions, "pose_graph": PoseGraphOptions}
         return cls(**{name: options_from_dict(kind, data.get(name), f"{where} [{name}]")
                       for name, kind in types.items()})
 
@@ -74,11 +80,13 @@ class Mapper:
                           "keyframes": len(result.keyframe_set.keyframes),
                           "reused": result.reused}
             else:
-                stage_class = {"features": FeatureStage, "vocabulary": VocabularyStage,
-                               "loops": LoopStage}[stage]
                 if stage == "features":
                     runner = FeatureStage(o.features)
+                elif stage == "pairs":
+                    runner = PairStage(o.pairs)
                 else:
+                    stage_class = {"vocabulary": VocabularyStage, "loops": LoopStage,
+                                   "pose_graph": PoseGraphStage}[stage]
                     runner = stage_class(getattr(o, stage), o.features)
                 outcome = runner.solve(run_dir, overwrite)
                 seconds, counts = outcome.seconds, outcome.counts
@@ -87,7 +95,8 @@ class Mapper:
         report.update({"version": __version__, "python": platform.python_version(),
                        "bag": str(bag), "options": {k: options_as_dict(getattr(o, k))
                                                     for k in ("keyframes", "features",
-                                                              "vocabulary", "loops")},
+                                                              "vocabulary", "loops", "pairs",
+                                                              "pose_graph")},
                        "last_run_seconds": round(time.perf_counter() - started, 3)})
         with atomic_write(report_path) as handle:
             json.dump(report, handle, indent=2)

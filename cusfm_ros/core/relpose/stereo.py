@@ -1,0 +1,118 @@
+"""Stereo relative pose (paper section 4.1): the metric pose of a calibrated stereo pair
+relative to a map view, from two essential matrices and the known stereo extrinsic.
+
+1. Essential-matrix RANSAC (OpenCV USAC) left->map and right->map gives rotations and unit
+   translation directions: ``map_from_left = (R_ml, s1 d_ml)``,
+   ``map_from_right = (R_mr, s2 d_mr)``.
+2. ``map_from_right = map_from_left * left_from_right`` gives, for the translations,
+   ``s2 d_mr - s1 d_ml = R_ml t_lr``: linear least squares for the two scales.
+3. Refinement of the 6-DoF ``map_from_left`` minimising the Sampson distances of the inliers of
+   both pairs (scipy ``least_squares``, soft-L1 loss).
+
+Points are normalized camera coordinates (x/z, y/z); any camera model gets them from
+``unproject``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from cusfm_ros.core.geometry import Rigid3, skew
+from cusfm_ros.errors import ConfigError, GeometryError
+
+
+@dataclass(frozen=True)
+class StereoPoseOptions:
+    ransac_threshold: float = 1e-3
+    """Normalized-coordinate threshold (about 1 px at a 1000 px focal length)."""
+    min_inliers: int = 15
+    refine: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.ransac_threshold <= 0 or self.min_inliers < 5:
+            raise ConfigError("stereo pose: ransac_threshold > 0 and min_inliers >= 5")
+
+
+@dataclass
+class StereoPoseResult:
+    map_from_left: Rigid3
+    inliers_left: int
+    inliers_right: int
+    scales: tuple[float, float]
+
+
+def _two_view(points_cam: np.ndarray, points_map: np.ndarray, options: StereoPoseOptions,
+              side: str):
+    """map_from_cam rotation, unit translation and inlier mask from one pair."""
+    if len(points_cam) < options.min_inliers:
+        raise GeometryError(f"stereo pose: {len(points_cam)} {side} matches, need at least "
+                            f"{options.min_inliers}")
+    cv2.setRNGSeed(options.seed)
+    essential, mask = cv2.findEssentialMat(points_cam, points_map, np.eye(3),
+                                           method=cv2.USAC_MAGSAC, prob=0.99999,
+                                           threshold=options.ransac_threshold)
+    if essential is None or essential.shape != (3, 3):
+        raise GeometryError(f"stereo pose: no essential matrix for the {side} pair")
+    count, rotation, translation, mask = cv2.recoverPose(essential, points_cam, points_map,
+                                                         np.eye(3), mask=mask)
+    inliers = mask.ravel() > 0
+    if count < options.min_inliers:
+        raise GeometryError(f"stereo pose: only {count} {side} inliers (need "
+                            f"{options.min_inliers}); the views barely overlap or the motion "
+                            "is degenerate")
+    return rotation, translation.ravel() / np.linalg.norm(translation), inliers
+
+
+def _sampson(map_from_cam: np.ndarray, points_cam: np.ndarray, points_map: np.ndarray):
+    essential = skew(map_from_cam[:3, 3]) @ map_from_cam[:3, :3]
+    x0 = np.c_[points_cam, np.ones(len(points_cam))]
+    x1 = np.c_[points_map, np.ones(len(points_map))]
+    ex0 = x0 @ essential.T
+    etx1 = x1 @ essential
+    numerator = np.sum(x1 * ex0, axis=1)
+    denominator = ex0[:, 0] ** 2 + ex0[:, 1] ** 2 + etx1[:, 0] ** 2 + etx1[:, 1] ** 2
+    return numerator / np.sqrt(np.maximum(denominator, 1e-30))
+
+
+def stereo_relative_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.ndarray,
+                         map_for_right: np.ndarray, left_from_right: Rigid3,
+                         options: StereoPoseOptions = StereoPoseOptions()) -> StereoPoseResult:
+    """``map_from_left`` (metric) from normalized points: left<->map and right<->map matches."""
+    baseline = float(np.linalg.norm(left_from_right.translation))
+    if baseline < 1e-6:
+        raise GeometryError("stereo pose: the stereo baseline is zero; check the stereo "
+                            "calibration (left_from_right extrinsic)")
+    for name, array in (("left", left), ("map", map_for_left), ("right", right),
+                        ("map", map_for_right)):
+        if not np.all(np.isfinite(array)):
+            raise GeometryError(f"stereo pose: {name} points contain NaN or inf")
+    r_ml, d_ml, inl_l = _two_view(left, map_for_left, options, "left")
+    r_mr, d_mr, inl_r = _two_view(right, map_for_right, options, "right")
+    # s2 d_mr - s1 d_ml = R_ml t_lr
+    system = np.column_stack([-d_ml, d_mr])
+    target = r_ml @ left_from_right.translation
+    if np.linalg.cond(system) > 1e6:
+        raise GeometryError("stereo pose: the two translation directions are parallel, so "
+                            "the scale is unobservable (degenerate motion)")
+    (s1, s2), *_ = np.linalg.lstsq(system, target, rcond=None)
+    initial = Rigid3(r_ml, s1 * d_ml)
+    if options.refine:
+        l_pts, lm_pts = left[inl_l], map_for_left[inl_l]
+        r_pts, rm_pts = right[inl_r], map_for_right[inl_r]
+        lr = left_from_right.matrix()
+
+        def residuals(x):
+            pose = Rigid3.from_rotvec(x[:3], x[3:]).matrix()
+            return np.r_[_sampson(pose, l_pts, lm_pts), _sampson(pose @ lr, r_pts, rm_pts)]
+
+        scale = options.ransac_threshold
+        solution = least_squares(residuals, np.r_[initial.rotvec(), initial.translation],
+                                 loss="soft_l1", f_scale=scale, x_scale="jac", xtol=1e-14,
+                                 ftol=1e-14, gtol=1e-14, max_nfev=200)
+        initial = Rigid3.from_rotvec(solution.x[:3], solution.x[3:])
+    return StereoPoseResult(initial, int(inl_l.sum()), int(inl_r.sum()), (float(s1), float(s2)))

@@ -1,0 +1,192 @@
+"""Stages ``pairs`` and ``pose_graph``.
+
+- pairs:      view-graph (sequential + loop + extrinsic) or radius pair selection ->
+              RUN_DIR/pairs/pairs.txt (one pair of image names per line) and counts.
+- pose_graph: one node per rig sample at its initial (odometry) pose, sequential odometry
+              factors, one loop factor per verified loop — metric from the stereo relative pose
+              when the query camera has a stereo partner, else the two-view rotation and
+              direction with the odometry's distance as scale — robust loss, gtsam LM ->
+              RUN_DIR/pose_graph/poses.tum (world_from_base_link per rig sample) and
+              summary.json.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.graph.pairs import PairOptions, select_pairs
+from cusfm_ros.core.graph.pose_graph import LoopConstraint, PoseGraphOptimizer, PoseGraphOptions
+from cusfm_ros.core.keyframes import KeyframeSet
+from cusfm_ros.core.relpose.stereo import StereoPoseOptions, stereo_relative_pose
+from cusfm_ros.core.rig import Rig
+from cusfm_ros.core.trajectory import Trajectory
+from cusfm_ros.errors import CusfmError, GeometryError
+from cusfm_ros.io.atomic import atomic_write
+from cusfm_ros.io.tum import write_tum
+from cusfm_ros.pipeline.features import FeatureOptions, make_matcher
+from cusfm_ros.pipeline.options import options_as_dict
+from cusfm_ros.pipeline.retrieval import StageResult, load_keyframes, open_store
+
+logger = logging.getLogger(__name__)
+
+
+def read_loops(run_dir: Path) -> list[dict]:
+    path = Path(run_dir) / "loops" / "loops.json"
+    if not path.is_file():
+        raise CusfmError(f"{path} is missing; run the loops stage first")
+    return json.loads(path.read_text())["loops"]
+
+
+class PairStage:
+    def __init__(self, options: PairOptions = PairOptions()) -> None:
+        self.options = options
+
+    def solve(self, run_dir: str | Path, overwrite: bool = False) -> StageResult:
+        run_dir, started = Path(run_dir), time.perf_counter()
+        keyframes = load_keyframes(run_dir)
+        loops = read_loops(run_dir) if self.options.mode == "view_graph" else []
+        pairs = select_pairs(keyframes, [(x["query_image"], x["match_image"]) for x in loops],
+                             self.options)
+        out = run_dir / "pairs" / "pairs.txt"
+        with atomic_write(out) as handle:
+            handle.writelines(f"{a} {b}\n" for a, b, _ in pairs.pairs)
+        counts = {"mode": self.options.mode, "pairs": len(pairs.pairs), **pairs.counts()}
+        (run_dir / "pairs" / "pairs.json").write_text(json.dumps(counts, indent=2))
+        logger.info("pairs: %s", counts)
+        return StageResult(time.perf_counter() - started, counts)
+
+
+def stereo_partner(rig: Rig, name: str, max_angle_deg: float = 5.0) -> str | None:
+    """The camera forming a stereo pair with ``name``: parallel optical axes, a baseline."""
+    own = rig[name].rig_from_cam
+    best, best_distance = None, np.inf
+    for camera in rig.cameras:
+        if camera.name == name:
+            continue
+        relative = own.inverse() * camera.rig_from_cam
+        distance = float(np.linalg.norm(relative.translation))
+        if relative.rotation_angle_deg() < max_angle_deg and 0.02 < distance < best_distance:
+            best, best_distance = camera.name, distance
+    return best
+
+
+def _normalized(camera, keypoints_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    rays = camera.unproject(keypoints_px)
+    front = rays[:, 2] > 0.1
+    return rays[:, :2] / np.where(front, rays[:, 2], 1.0)[:, None], front
+
+
+class PoseGraphStage:
+    def __init__(self, options: PoseGraphOptions = PoseGraphOptions(),
+                 features: FeatureOptions = FeatureOptions()) -> None:
+        self.options = options
+        self.features = features
+
+    def _samples(self, keyframes: KeyframeSet):
+        samples = keyframes.samples()
+        order = sorted(samples, key=lambda s: min(k.stamp_ns for k in samples[s]))
+        stamps = np.array([min(k.stamp_ns for k in samples[s]) for s in order], np.int64)
+        poses = np.stack([keyframes.world_from_rig(samples[s][0]).matrix() for s in order])
+        return order, stamps, poses
+
+    def _loop_measurement(self, loop: dict, keyframes: KeyframeSet, images: dict, store,
+                          matcher) -> tuple[Rigid3, str]:
+        """rig_match_from_rig_query for one verified loop, and how it was measured."""
+        rig = keyframes.rig
+        query, match = images[loop["query_image"]], images[loop["match_image"]]
+        rig_from_q = rig[query.camera_name].rig_from_cam
+        rig_from_m = rig[match.camera_name].rig_from_cam
+        features_q = store.features(query.image_name)
+        features_m = store.features(match.image_name)
+        partner = stereo_partner(rig, query.camera_name)
+        partner_image = next((k for k in keyframes.samples()[query.sample_id]
+                              if k.camera_name == partner), None) if partner else None
+        if partner_image is not None:
+            features_p = store.features(partner_image.image_name)
+            if store.has_matches(partner_image.image_name, match.image_name):
+                matches_p = store.matches(partner_image.image_name, match.image_name)
+            else:
+                matches_p = matcher.match(features_p, features_m)
+                store.put_matches(partner_image.image_name, match.image_name, matches_p)
+            matches_q = store.matches(query.image_name, match.image_name)
+            cam_q, cam_p = rig[query.camera_name].camera, rig[partner].camera
+            cam_m = rig[match.camera_name].camera
+            xq, fq = _normalized(cam_q, features_q.keypoints_px[matches_q.indices[:, 0]])
+            xmq, fmq = _normalized(cam_m, features_m.keypoints_px[matches_q.indices[:, 1]])
+            xp, fp = _normalized(cam_p, features_p.keypoints_px[matches_p.indices[:, 0]])
+            xmp, fmp = _normalized(cam_m, features_m.keypoints_px[matches_p.indices[:, 1]])
+            q_from_p = rig_from_q.inverse() * rig[partner].rig_from_cam
+            threshold = 1.0 / float(getattr(cam_q, "fx", None) or cam_q.focal_px)
+            result = stereo_relative_pose(xq[fq & fmq], xmq[fq & fmq], xp[fp & fmp],
+                                          xmp[fp & fmp], q_from_p,
+                                          StereoPoseOptions(ransac_threshold=threshold))
+            m_from_q, how = result.map_from_left, "stereo"
+        else:
+            relative = loop["match_cam_from_query_cam"]
+            rotation = Rigid3.from_quat_xyzw(relative["quat_xyzw"], [0, 0, 0]).rotation
+            # two-view translation direction; its length comes from the odometry prior
+            prior = (keyframes.world_from_rig(match) * rig_from_m).inverse() * (
+                keyframes.world_from_rig(query) * rig_from_q)
+            distance = float(np.linalg.norm(prior.translation))
+            m_from_q = Rigid3(rotation, np.asarray(relative["translation_direction"]) * distance)
+            how = "two-view + odometry scale"
+        return rig_from_m * m_from_q * rig_from_q.inverse(), how
+
+    def build(self, run_dir: Path):
+        """Initial poses, stamps and loop constraints of the graph (and bookkeeping)."""
+        keyframes = load_keyframes(run_dir)
+        loops = read_loops(run_dir)
+        order, stamps, initial = self._samples(keyframes)
+        node = {sample: i for i, sample in enumerate(order)}
+        images = {k.image_name: k for k in keyframes.keyframes}
+        constraints, kinds, skipped = [], {}, []
+        matcher = None
+        with open_store(run_dir, self.features) as store:
+            for loop in loops:
+                query, match = images[loop["query_image"]], images[loop["match_image"]]
+                if node[query.sample_id] == node[match.sample_id]:
+                    continue
+                try:
+                    matcher = matcher or make_matcher(self.features)
+                    measured, how = self._loop_measurement(loop, keyframes, images, store,
+                                                           matcher)
+                except GeometryError as exc:
+                    skipped.append(f"{loop['query_image']} - {loop['match_image']}: {exc}")
+                    continue
+                constraints.append(LoopConstraint(node[match.sample_id], node[query.sample_id],
+                                                  measured.matrix()))
+                kinds[how] = kinds.get(how, 0) + 1
+        for reason in skipped[:5]:
+            logger.warning("pose_graph: loop skipped (%s)", reason)
+        return order, stamps, initial, constraints, kinds, skipped
+
+    def solve(self, run_dir: str | Path, overwrite: bool = False,
+              extra: list[LoopConstraint] = ()) -> StageResult:
+        """``extra`` constraints join the measured ones (benchmarks inject false loops)."""
+        run_dir, started = Path(run_dir), time.perf_counter()
+        out = run_dir / "pose_graph" / "poses.tum"
+        order, stamps, initial, constraints, kinds, skipped = self.build(run_dir)
+        constraints = constraints + list(extra)
+        result = PoseGraphOptimizer(self.options).solve(initial, constraints)
+        write_tum(out, Trajectory(stamps, result.world_from_rig))
+        rejected = int(np.sum(result.loop_residuals_after > 3.0))
+        summary = {"nodes": len(order), "odometry_edges": len(order) - 1,
+                   "loop_edges": len(constraints), "loop_edges_by_measurement": kinds,
+                   "loops_skipped": len(skipped), "loops_downweighted": rejected,
+                   "error_before": result.error_before, "error_after": result.error_after,
+                   "iterations": result.iterations, "options": options_as_dict(self.options)}
+        with atomic_write(run_dir / "pose_graph" / "summary.json") as handle:
+            json.dump(summary, handle, indent=2)
+        seconds = time.perf_counter() - started
+        logger.info("pose_graph: %d nodes, %d loop edges (%s), error %.3g -> %.3g in %.1f s",
+                    len(order), len(constraints), kinds, result.error_before,
+                    result.error_after, seconds)
+        counts = {k: summary[k] for k in ("nodes", "loop_edges", "loops_skipped",
+                                          "loops_downweighted", "error_before", "error_after")}
+        return StageResult(seconds, counts)
