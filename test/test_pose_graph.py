@@ -45,3 +45,29 @@ def test_a_wrong_loop_does_not_bend_the_map():
     robust = PoseGraphOptimizer().solve(odometry.world_from_body, good + [wrong])
     assert ate(truth, robust.world_from_rig) <= 1.1 * ate(truth, clean.world_from_rig)
     assert robust.loop_residuals_after[-1] > 10 * np.median(robust.loop_residuals_after[:-1])
+
+
+def test_camera_configuration_with_extrinsic_factors():
+    """Two cameras per sample as separate nodes, tied by their extrinsic; loops on camera 0."""
+    import pytest
+
+    from cusfm_ros.core.geometry import Rigid3
+    from cusfm_ros.errors import GeometryError
+
+    truth, odometry = drifted_loop()
+    cam1 = Rigid3.from_rotvec([0, 0, 0.4], [0.0, 0.3, 0.1]).matrix()  # rig_from_cam1
+    n = len(truth)
+    initial = np.concatenate([odometry.world_from_body, odometry.world_from_body @ cam1])
+    rigid = [LoopConstraint(i, n + i, cam1) for i in range(n)]
+    pairs = [(i, 119 - k) for k in range(3) for i in range(0, 4)] + [(0, 60), (30, 90)]
+    loops = loops_from_truth(truth, pairs)
+    chains = [list(range(n)), list(range(n, 2 * n))]
+    result = PoseGraphOptimizer().solve(initial, loops, chains=chains, rigid=rigid)
+    rig = result.world_from_rig[:n]
+    assert ate(truth, rig) < 0.5 * ate(truth, odometry.world_from_body)
+    # the second camera stays rigidly attached
+    attached = invert_matrices(result.world_from_rig[:n]) @ result.world_from_rig[n:]
+    np.testing.assert_allclose(attached[:, :3, 3], np.repeat(cam1[None, :3, 3], n, 0),
+                               atol=5e-3)
+    with pytest.raises(GeometryError, match="disconnected"):
+        PoseGraphOptimizer().solve(initial, loops, chains=chains)  # no extrinsic factors

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 
 from cusfm_ros.cli.keyframes import add_bag_arguments, keyframe_options
 from cusfm_ros.cli.match import add_feature_arguments, feature_options
@@ -26,6 +27,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--vocab-method", choices=("kmeans", "birch"), default=None)
     parser.add_argument("--retrieval", choices=("view_graph", "radius"), default=None,
                         help="pair selection (default view_graph)")
+    parser.add_argument("--frame-type", choices=("rig", "camera"), default=None,
+                        help="pose graph nodes: one per rig sample (default) or per image")
     add_bag_arguments(parser)
     add_feature_arguments(parser)
     parser.set_defaults(run=run)
@@ -46,7 +49,8 @@ def mapper_options(args: argparse.Namespace) -> MapperOptions:
         keyframes=keyframe_options(args), features=feature_options(args, base.features),
         vocabulary=options_from_dict(VocabularyStageOptions, vocabulary, where),
         loops=base.loops, pairs=options_from_dict(PairOptions, pairs, where),
-        pose_graph=base.pose_graph)
+        pose_graph=replace(base.pose_graph, frame_type=args.frame_type or
+                           base.pose_graph.frame_type))
 
 
 def run(args: argparse.Namespace) -> int:

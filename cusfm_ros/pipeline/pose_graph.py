@@ -139,44 +139,75 @@ class PoseGraphStage:
         return rig_from_m * m_from_q * rig_from_q.inverse(), how
 
     def build(self, run_dir: Path):
-        """Initial poses, stamps and loop constraints of the graph (and bookkeeping)."""
+        """The graph: initial node poses, odometry chains, rigid (extrinsic) edges, loop
+        constraints, and per rig sample the node and transform giving world_from_rig."""
         keyframes = load_keyframes(run_dir)
         loops = read_loops(run_dir)
-        order, stamps, initial = self._samples(keyframes)
-        node = {sample: i for i, sample in enumerate(order)}
-        images = {k.image_name: k for k in keyframes.keyframes}
+        order, stamps, rig_poses = self._samples(keyframes)
+        samples = keyframes.samples()
+        rig = keyframes.rig
+        if self.options.frame_type == "rig":
+            position = {sample: i for i, sample in enumerate(order)}
+            node_of = {k.image_name: position[k.sample_id] for k in keyframes.keyframes}
+            initial, chains, rigid = rig_poses, None, []
+            readout = [(i, np.eye(4)) for i in range(len(order))]
+        else:  # one node per image, tied to the others of its sample by the extrinsics
+            images = sorted(keyframes.keyframes, key=lambda k: (k.stamp_ns, k.camera_name))
+            node_of = {k.image_name: i for i, k in enumerate(images)}
+            initial = np.stack([k.world_from_cam.matrix() for k in images])
+            chains = [[node_of[k.image_name] for k in images if k.camera_name == c]
+                      for c in rig.names]
+            chains = [c for c in chains if len(c) > 1]
+            rigid, readout = [], []
+            for sample in order:
+                first, *others = samples[sample]
+                base = rig[first.camera_name].rig_from_cam
+                for other in others:
+                    relative = base.inverse() * rig[other.camera_name].rig_from_cam
+                    rigid.append(LoopConstraint(node_of[first.image_name],
+                                                node_of[other.image_name], relative.matrix()))
+                readout.append((node_of[first.image_name], base.inverse().matrix()))
+        images_by_name = {k.image_name: k for k in keyframes.keyframes}
         constraints, kinds, skipped = [], {}, []
         matcher = None
         with open_store(run_dir, self.features) as store:
             for loop in loops:
-                query, match = images[loop["query_image"]], images[loop["match_image"]]
-                if node[query.sample_id] == node[match.sample_id]:
+                query = images_by_name[loop["query_image"]]
+                match = images_by_name[loop["match_image"]]
+                if query.sample_id == match.sample_id:
                     continue
                 try:
                     matcher = matcher or make_matcher(self.features)
-                    measured, how = self._loop_measurement(loop, keyframes, images, store,
-                                                           matcher)
+                    measured, how = self._loop_measurement(loop, keyframes, images_by_name,
+                                                           store, matcher)
                 except GeometryError as exc:
                     skipped.append(f"{loop['query_image']} - {loop['match_image']}: {exc}")
                     continue
-                constraints.append(LoopConstraint(node[match.sample_id], node[query.sample_id],
-                                                  measured.matrix()))
+                if self.options.frame_type == "camera":  # rig relation -> camera relation
+                    measured = (rig[match.camera_name].rig_from_cam.inverse() * measured
+                                * rig[query.camera_name].rig_from_cam)
+                constraints.append(LoopConstraint(node_of[match.image_name],
+                                                  node_of[query.image_name], measured.matrix()))
                 kinds[how] = kinds.get(how, 0) + 1
         for reason in skipped[:5]:
             logger.warning("pose_graph: loop skipped (%s)", reason)
-        return order, stamps, initial, constraints, kinds, skipped
+        return stamps, initial, chains, rigid, readout, constraints, kinds, skipped
 
     def solve(self, run_dir: str | Path, overwrite: bool = False,
               extra: list[LoopConstraint] = ()) -> StageResult:
         """``extra`` constraints join the measured ones (benchmarks inject false loops)."""
         run_dir, started = Path(run_dir), time.perf_counter()
         out = run_dir / "pose_graph" / "poses.tum"
-        order, stamps, initial, constraints, kinds, skipped = self.build(run_dir)
+        stamps, initial, chains, rigid, readout, constraints, kinds, skipped = self.build(
+            run_dir)
         constraints = constraints + list(extra)
-        result = PoseGraphOptimizer(self.options).solve(initial, constraints)
-        write_tum(out, Trajectory(stamps, result.world_from_rig))
+        result = PoseGraphOptimizer(self.options).solve(initial, constraints, chains, rigid)
+        world_from_rig = np.stack([result.world_from_rig[node] @ node_from_rig
+                                   for node, node_from_rig in readout])
+        write_tum(out, Trajectory(stamps, world_from_rig))
         rejected = int(np.sum(result.loop_residuals_after > 3.0))
-        summary = {"nodes": len(order), "odometry_edges": len(order) - 1,
+        summary = {"frame_type": self.options.frame_type, "nodes": len(initial),
+                   "rig_samples": len(stamps), "extrinsic_edges": len(rigid),
                    "loop_edges": len(constraints), "loop_edges_by_measurement": kinds,
                    "loops_skipped": len(skipped), "loops_downweighted": rejected,
                    "error_before": result.error_before, "error_after": result.error_after,
@@ -185,7 +216,7 @@ class PoseGraphStage:
             json.dump(summary, handle, indent=2)
         seconds = time.perf_counter() - started
         logger.info("pose_graph: %d nodes, %d loop edges (%s), error %.3g -> %.3g in %.1f s",
-                    len(order), len(constraints), kinds, result.error_before,
+                    len(initial), len(constraints), kinds, result.error_before,
                     result.error_after, seconds)
         counts = {k: summary[k] for k in ("nodes", "loop_edges", "loops_skipped",
                                           "loops_downweighted", "error_before", "error_after")}

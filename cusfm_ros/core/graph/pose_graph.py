@@ -1,8 +1,10 @@
-"""Pose graph optimization with gtsam (paper section 4.2), rig configuration.
+"""Pose graph optimization with gtsam (paper section 4.2).
 
-One node per rig sample (``world_from_rig``); sequential between-factors from the odometry
-(k = 1), loop-closure between-factors with a robust loss (Cauchy by default) so that a wrong
-loop cannot bend the map, and a prior on the first node. Levenberg-Marquardt.
+Nodes are poses (``world_from_rig`` per rig sample in the ``rig`` configuration, or
+``world_from_cam`` per image in the ``camera`` configuration); sequential between-factors come
+from the odometry, fixed-extrinsic factors tie the cameras of one sample together (camera
+configuration), loop-closure between-factors carry a robust loss (Cauchy by default) so that a
+wrong loop cannot bend the map, and a prior holds the first node. Levenberg-Marquardt.
 """
 
 from __future__ import annotations
@@ -29,11 +31,17 @@ class PoseGraphOptions:
     robust: str = "cauchy"
     robust_scale: float = 1.0
     """Whitened error at which the robust loss starts discounting a loop."""
+    extrinsic_sigma_m: float = 0.001
+    extrinsic_sigma_deg: float = 0.01
+    frame_type: str = "rig"
+    """``rig``: one node per rig sample; ``camera``: one node per image + extrinsic factors."""
     max_iterations: int = 100
 
     def __post_init__(self) -> None:
         if self.robust not in ROBUST:
             raise ConfigError(f"robust loss must be one of {', '.join(ROBUST)}")
+        if self.frame_type not in ("rig", "camera"):
+            raise ConfigError(f"frame_type must be rig or camera, got {self.frame_type!r}")
 
 
 @dataclass(frozen=True)
@@ -54,6 +62,16 @@ class PoseGraphResult:
     """Whitened residual norm of each loop factor after optimization (large = rejected)."""
 
 
+def _components(n: int, edges: list[tuple[int, int]]) -> np.ndarray:
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows = [a for a, _ in edges]
+    cols = [b for _, b in edges]
+    adjacency = coo_matrix((np.ones(len(edges)), (rows, cols)), shape=(n, n))
+    return connected_components(adjacency, directed=False)[1]
+
+
 def _pose3(matrix: np.ndarray):
     import gtsam
 
@@ -63,6 +81,12 @@ def _pose3(matrix: np.ndarray):
 class PoseGraphOptimizer:
     def __init__(self, options: PoseGraphOptions = PoseGraphOptions()) -> None:
         self.options = options
+
+    @staticmethod
+    def _connected(n, chains, rigid, loops) -> bool:
+        edges = [(a, b) for chain in chains for a, b in zip(chain[:-1], chain[1:])]
+        edges += [(e.index0, e.index1) for e in list(rigid) + list(loops)]
+        return bool(np.all(_components(n, edges) == _components(n, edges)[0])) if edges else n == 1
 
     def _noise(self, sigma_deg: float, sigma_m: float, robust: bool):
         import gtsam
@@ -76,11 +100,16 @@ class PoseGraphOptimizer:
             self.options.robust_scale)
         return gtsam.noiseModel.Robust.Create(estimator, base)
 
-    def solve(self, world_from_rig: np.ndarray, loops: list[LoopConstraint]) -> PoseGraphResult:
+    def solve(self, world_from_rig: np.ndarray, loops: list[LoopConstraint],
+              chains: list[list[int]] | None = None,
+              rigid: list[LoopConstraint] = ()) -> PoseGraphResult:
+        """``chains``: node sequences linked by odometry factors (default: all nodes in order);
+        ``rigid``: fixed relative poses (extrinsics) between nodes."""
         import gtsam
 
         poses = check_finite(world_from_rig, "pose graph initial poses")
         n = len(poses)
+        chains = [list(range(n))] if chains is None else chains
         if n < 2:
             raise GeometryError("a pose graph needs at least two nodes")
         for loop in loops:
@@ -93,13 +122,23 @@ class PoseGraphOptimizer:
         for i, pose in enumerate(poses):
             initial.insert(i, _pose3(pose))
         graph.add(gtsam.PriorFactorPose3(0, _pose3(poses[0]), self._noise(1e-3, 1e-4, False)))
-        relative = invert_matrices(poses[:-1]) @ poses[1:]
-        for i, step in enumerate(relative):
-            metres = float(np.linalg.norm(step[:3, 3]))
-            graph.add(gtsam.BetweenFactorPose3(
-                i, i + 1, _pose3(step),
-                self._noise(o.odometry_sigma_deg + o.odometry_sigma_deg_per_m * metres,
-                            o.odometry_sigma_m + o.odometry_sigma_per_m * metres, False)))
+        for chain in chains:
+            relative = invert_matrices(poses[chain[:-1]]) @ poses[chain[1:]]
+            for i, j, step in zip(chain[:-1], chain[1:], relative):
+                metres = float(np.linalg.norm(step[:3, 3]))
+                graph.add(gtsam.BetweenFactorPose3(
+                    i, j, _pose3(step),
+                    self._noise(o.odometry_sigma_deg + o.odometry_sigma_deg_per_m * metres,
+                                o.odometry_sigma_m + o.odometry_sigma_per_m * metres, False)))
+        for edge in rigid:
+            graph.add(gtsam.BetweenFactorPose3(edge.index0, edge.index1,
+                                               _pose3(edge.node0_from_node1),
+                                               self._noise(o.extrinsic_sigma_deg,
+                                                           o.extrinsic_sigma_m, False)))
+        connected = self._connected(n, chains, rigid, loops)
+        if not connected:
+            raise GeometryError("the pose graph is disconnected (some nodes are linked to the "
+                                "first by no odometry, extrinsic or loop edge)")
         first_loop = graph.size()
         for loop in loops:
             graph.add(gtsam.BetweenFactorPose3(loop.index0, loop.index1,
