@@ -76,12 +76,6 @@ def stereo_partner(rig: Rig, name: str, max_angle_deg: float = 5.0) -> str | Non
     return best
 
 
-def _normalized(camera, keypoints_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    rays = camera.unproject(keypoints_px)
-    front = rays[:, 2] > 0.1
-    return rays[:, :2] / np.where(front, rays[:, 2], 1.0)[:, None], front
-
-
 class PoseGraphStage:
     def __init__(self, options: PoseGraphOptions = PoseGraphOptions(),
                  features: FeatureOptions = FeatureOptions()) -> None:
@@ -117,10 +111,10 @@ class PoseGraphStage:
             matches_q = store.matches(query.image_name, match.image_name)
             cam_q, cam_p = rig[query.camera_name].camera, rig[partner].camera
             cam_m = rig[match.camera_name].camera
-            xq, fq = _normalized(cam_q, features_q.keypoints_px[matches_q.indices[:, 0]])
-            xmq, fmq = _normalized(cam_m, features_m.keypoints_px[matches_q.indices[:, 1]])
-            xp, fp = _normalized(cam_p, features_p.keypoints_px[matches_p.indices[:, 0]])
-            xmp, fmp = _normalized(cam_m, features_m.keypoints_px[matches_p.indices[:, 1]])
+            xq, fq = cam_q.normalized(features_q.keypoints_px[matches_q.indices[:, 0]])
+            xmq, fmq = cam_m.normalized(features_m.keypoints_px[matches_q.indices[:, 1]])
+            xp, fp = cam_p.normalized(features_p.keypoints_px[matches_p.indices[:, 0]])
+            xmp, fmp = cam_m.normalized(features_m.keypoints_px[matches_p.indices[:, 1]])
             q_from_p = rig_from_q.inverse() * rig[partner].rig_from_cam
             threshold = 1.0 / float(getattr(cam_q, "fx", None) or cam_q.focal_px)
             result = stereo_relative_pose(xq[fq & fmq], xmq[fq & fmq], xp[fp & fmp],

@@ -102,6 +102,13 @@ class CameraBase:
         uu, vv = np.meshgrid(us, vs)
         return np.stack([uu.ravel(), vv.ravel()], axis=1)
 
+    def normalized(self, uv_px: np.ndarray, min_z: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+        """Normalized coordinates (x/z, y/z) of pixels, for two-view geometry on any model,
+        and a mask of the rays far enough in front (z > ``min_z``) for them to be defined."""
+        rays = self.unproject(uv_px)
+        front = rays[:, 2] > min_z
+        return rays[:, :2] / np.where(front, rays[:, 2], 1.0)[:, None], front
+
     def __eq__(self, other: object) -> bool:
         return isinstance(other, CameraBase) and self.to_dict() == other.to_dict()
 

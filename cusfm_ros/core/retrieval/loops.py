@@ -55,13 +55,12 @@ def verify_pair(features0: Features, features1: Features, matches: Matches,
     """Essential-matrix RANSAC between two calibrated views; accept on enough inliers."""
     if len(matches) < max(options.min_inliers, 5):
         return Verification(False, 0, len(matches))
-    rays0 = camera0.unproject(features0.keypoints_px[matches.indices[:, 0]])
-    rays1 = camera1.unproject(features1.keypoints_px[matches.indices[:, 1]])
-    front = (rays0[:, 2] > 0.1) & (rays1[:, 2] > 0.1)  # normalized coordinates need z > 0
+    x0, front0 = camera0.normalized(features0.keypoints_px[matches.indices[:, 0]])
+    x1, front1 = camera1.normalized(features1.keypoints_px[matches.indices[:, 1]])
+    front = front0 & front1
     if front.sum() < options.min_inliers:
         return Verification(False, 0, len(matches))
-    x0 = rays0[front, :2] / rays0[front, 2:]
-    x1 = rays1[front, :2] / rays1[front, 2:]
+    x0, x1 = x0[front], x1[front]
     cv2.setRNGSeed(options.seed)
     threshold = options.ransac_threshold_px / np.sqrt(_focal_px(camera0) * _focal_px(camera1))
     essential, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.USAC_MAGSAC,
