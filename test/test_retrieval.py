@@ -117,12 +117,12 @@ def test_loops_and_pose_graph_on_a_two_lap_stereo_sequence(tmp_path):
     from cusfm_ros.sim.loop_truth import evaluate_loops
 
     sim = Simulator(SimulationOptions(scene="indoor", rig="stereo", frames=120, loops=2,
-                                      image_width=256, image_height=192,
+                                      image_width=320, image_height=240,
                                       odom_yaw_drift_deg_per_m=0.3, odom_scale_error=0.02)
                     ).generate(tmp_path / "sim")
     run = tmp_path / "run"
     args = ["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
-            "--max-keypoints", "512"]
+            "--max-keypoints", "1024"]
     assert main(args) == 0
     report = json.loads((run / "report.json").read_text())
     assert set(report["stages"]) == {"keyframes", "features", "vocabulary", "loops", "pairs",
