@@ -1,0 +1,1 @@
+"""Mapping: feature tracks, triangulation (bundle adjustment to follow)."""

@@ -1,0 +1,71 @@
+import numpy as np
+import pytest
+
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.mapping.tracks import build_tracks
+from cusfm_ros.core.mapping.triangulation import TriangulationOptions, triangulate_track
+from cusfm_ros.errors import ConfigError
+
+
+def test_tracks_join_chains_and_reject_conflicts():
+    # image 0 kp 0 - image 1 kp 2 - image 2 kp 1 : one track of 3
+    # image 0 kp 1 - image 1 kp 0 and image 1 kp 0 - image 2 kp 3 : another track of 3
+    # image 0 kp 3 - image 1 kp 4, image 1 kp 4 - image 2 kp 5, image 2 kp 5 - image 0 kp 2:
+    #   image 0 twice (kp 3 and kp 2) -> rejected
+    matches = [(0, 1, [[0, 2], [1, 0], [3, 4]]), (1, 2, [[2, 1], [0, 3], [4, 5]]),
+               (2, 0, [[5, 2]])]
+    tracks = build_tracks([4, 5, 6], matches)
+    assert len(tracks) == 2 and tracks.rejected == 1
+    found = sorted(tuple(zip(*tracks.track(t))) for t in range(len(tracks)))
+    assert found == [((0, 0), (1, 2), (2, 1)), ((0, 1), (1, 0), (2, 3))]
+    np.testing.assert_array_equal(tracks.lengths, [3, 3])
+    assert len(build_tracks([4, 5, 6], matches, min_length=4)) == 0
+    assert len(build_tracks([1, 1], [])) == 0
+
+
+def views(rng, count=5):
+    """Cameras on an arc around the origin, looking at it (cam_from_world)."""
+    poses = []
+    for angle in np.linspace(-0.4, 0.4, count):
+        centre = np.array([6 * np.sin(angle), 0.3 * rng.normal(), -6 * np.cos(angle)])
+        world_from_cam = Rigid3.from_rotvec([0, -angle, 0], centre)
+        poses.append(world_from_cam.inverse().matrix())
+    return np.stack(poses)
+
+
+def observe(cam_from_world, point, noise=0.0, rng=None):
+    p = np.einsum("nij,j->ni", cam_from_world[:, :3, :3], point) + cam_from_world[:, :3, 3]
+    xy = p[:, :2] / p[:, 2:]
+    return xy if not noise else xy + rng.normal(scale=noise, size=xy.shape)
+
+
+@pytest.mark.parametrize("method", ["dlt", "midpoint"])
+def test_noise_free_triangulation_is_exact(rng, method):
+    cams = views(rng)
+    point = np.array([0.4, -0.3, 1.0])
+    estimate, inliers = triangulate_track(cams, observe(cams, point),
+                                          TriangulationOptions(method=method))
+    np.testing.assert_allclose(estimate, point, atol=1e-9)
+    assert inliers.all()
+
+
+def test_outlier_observations_are_rejected(rng):
+    cams = views(rng, 6)
+    point = np.array([0.2, 0.5, -0.4])
+    xy = observe(cams, point, noise=5e-4, rng=rng)
+    xy[2] += 0.05  # a wrong match
+    estimate, inliers = triangulate_track(cams, xy)
+    assert inliers.tolist() == [True, True, False, True, True, True]
+    assert np.linalg.norm(estimate - point) < 0.05
+
+
+def test_cheirality_and_angle_checks(rng):
+    cams = views(rng)
+    behind = np.array([0.0, 0.0, -20.0])  # behind every camera (they sit at z ~ -6 looking +z)
+    estimate, _ = triangulate_track(cams, observe(cams, behind))
+    assert estimate is None
+    far = np.array([0.0, 0.0, 5000.0])  # rays nearly parallel
+    estimate, _ = triangulate_track(cams, observe(cams, far))
+    assert estimate is None
+    with pytest.raises(ConfigError, match="dlt or midpoint"):
+        TriangulationOptions(method="svd")
