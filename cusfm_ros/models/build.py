@@ -63,7 +63,6 @@ def _quiet_exporter() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
     # "torchvision is not installed": expected, we do not use its operators
     logging.getLogger("torch.onnx").setLevel(logging.ERROR)
-    os.environ.setdefault("TORCH_LOGS", "-all")
 
 
 def _export(module, args: tuple, path: Path, input_names: list[str], output_names: list[str],

@@ -19,7 +19,7 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -31,7 +31,7 @@ from cusfm_ros.core.keyframe_selection import group_rig_samples, select_keyframe
 from cusfm_ros.core.keyframes import Keyframe, KeyframeSet
 from cusfm_ros.core.rig import Rig, RigCamera
 from cusfm_ros.core.trajectory import Trajectory
-from cusfm_ros.errors import BagError, CusfmError, GeometryError
+from cusfm_ros.errors import BagError, ConfigError, CusfmError, GeometryError
 from cusfm_ros.io.atomic import atomic_directory
 from cusfm_ros.io.bags import messages as m
 from cusfm_ros.io.bags.layout import BagLayout, CameraStream, discover_layout
@@ -66,8 +66,6 @@ class KeyframeOptions:
     min_rotation_deg: float = 5.0
 
     def __post_init__(self) -> None:
-        from cusfm_ros.errors import ConfigError
-
         if self.pose_source not in ("auto", "odom", "tf"):
             raise ConfigError(f"pose_source must be auto, odom or tf, got {self.pose_source!r}")
         if self.sync_tolerance_ms < 0 or self.min_translation_m < 0 or self.min_rotation_deg < 0:
@@ -356,9 +354,7 @@ class KeyframeStage:
                            "over the bag; is it being written to?")
         order = sorted(range(len(keyframes)), key=lambda i: (keyframes[i].stamp_ns,
                                                              keyframes[i].camera_name))
-        keyframes = [Keyframe(str(new), *(getattr(keyframes[old], f) for f in
-                                          ("camera_name", "stamp_ns", "image_name", "sample_id",
-                                           "world_from_cam")))
+        keyframes = [replace(keyframes[old], keyframe_id=str(new))
                      for new, old in enumerate(order)]
         keyframe_set = KeyframeSet(rig, keyframes, "EGO_MOTION")
         write_frames_meta(tmp / "frames_meta.json", keyframe_set)

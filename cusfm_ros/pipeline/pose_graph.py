@@ -89,8 +89,8 @@ class PoseGraphStage:
         poses = np.stack([keyframes.world_from_rig(samples[s][0]).matrix() for s in order])
         return order, stamps, poses
 
-    def _loop_measurement(self, loop: dict, keyframes: KeyframeSet, images: dict, store,
-                          matcher) -> tuple[Rigid3, str]:
+    def _loop_measurement(self, loop: dict, keyframes: KeyframeSet, samples: dict,
+                          images: dict, store, matcher) -> tuple[Rigid3, str]:
         """rig_match_from_rig_query for one verified loop, and how it was measured."""
         rig = keyframes.rig
         query, match = images[loop["query_image"]], images[loop["match_image"]]
@@ -99,7 +99,7 @@ class PoseGraphStage:
         features_q = store.features(query.image_name)
         features_m = store.features(match.image_name)
         partner = stereo_partner(rig, query.camera_name)
-        partner_image = next((k for k in keyframes.samples()[query.sample_id]
+        partner_image = next((k for k in samples[query.sample_id]
                               if k.camera_name == partner), None) if partner else None
         if partner_image is not None:
             features_p = store.features(partner_image.image_name)
@@ -116,7 +116,7 @@ class PoseGraphStage:
             xp, fp = cam_p.normalized(features_p.keypoints_px[matches_p.indices[:, 0]])
             xmp, fmp = cam_m.normalized(features_m.keypoints_px[matches_p.indices[:, 1]])
             q_from_p = rig_from_q.inverse() * rig[partner].rig_from_cam
-            threshold = 1.0 / float(getattr(cam_q, "fx", None) or cam_q.focal_px)
+            threshold = 1.0 / cam_q.focal_px
             result = stereo_relative_pose(xq[fq & fmq], xmq[fq & fmq], xp[fp & fmp],
                                           xmp[fp & fmp], q_from_p,
                                           StereoPoseOptions(ransac_threshold=threshold))
@@ -172,8 +172,8 @@ class PoseGraphStage:
                     continue
                 try:
                     matcher = matcher or make_matcher(self.features)
-                    measured, how = self._loop_measurement(loop, keyframes, images_by_name,
-                                                           store, matcher)
+                    measured, how = self._loop_measurement(loop, keyframes, samples,
+                                                           images_by_name, store, matcher)
                 except GeometryError as exc:
                     skipped.append(f"{loop['query_image']} - {loop['match_image']}: {exc}")
                     continue

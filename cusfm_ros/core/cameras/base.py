@@ -134,6 +134,11 @@ class PerspectiveCamera(CameraBase):
             )
 
     @property
+    def focal_px(self) -> float:
+        """Horizontal focal length in pixels (pixel-size thresholds use it)."""
+        return self.fx
+
+    @property
     def K(self) -> np.ndarray:  # noqa: N802 - the standard name of the intrinsic matrix
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 

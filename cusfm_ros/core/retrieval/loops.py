@@ -46,10 +46,6 @@ class Verification:
     """Unit translation of cam_match_from_cam_query (scale unknown from two views)."""
 
 
-def _focal_px(camera: CameraBase) -> float:
-    return float(getattr(camera, "fx", None) or getattr(camera, "focal_px", 1.0))
-
-
 def verify_pair(features0: Features, features1: Features, matches: Matches,
                 camera0: CameraBase, camera1: CameraBase, options: LoopOptions) -> Verification:
     """Essential-matrix RANSAC between two calibrated views; accept on enough inliers."""
@@ -62,7 +58,7 @@ def verify_pair(features0: Features, features1: Features, matches: Matches,
         return Verification(False, 0, len(matches))
     x0, x1 = x0[front], x1[front]
     cv2.setRNGSeed(options.seed)
-    threshold = options.ransac_threshold_px / np.sqrt(_focal_px(camera0) * _focal_px(camera1))
+    threshold = options.ransac_threshold_px / np.sqrt(camera0.focal_px * camera1.focal_px)
     essential, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.USAC_MAGSAC,
                                            prob=0.9999, threshold=threshold)
     if essential is None or essential.shape != (3, 3):

@@ -161,8 +161,8 @@ def camera_from_camera_info(info: Any, topic: str) -> CameraBase:
     """Our camera model for a CameraInfo message; errors name the topic and the fix."""
     width, height = int(info.width), int(info.height)
     # ROS 2 names the arrays k, d; ROS 1 bags (decoded with their own definitions) K, D
-    k = np.asarray(getattr(info, "k", None) if hasattr(info, "k") else info.K, dtype=np.float64)
-    d = np.asarray(getattr(info, "d", None) if hasattr(info, "d") else info.D, dtype=np.float64)
+    k = np.asarray(info.k if hasattr(info, "k") else info.K, dtype=np.float64)
+    d = np.asarray(info.d if hasattr(info, "d") else info.D, dtype=np.float64)
     if width <= 0 or height <= 0 or not np.any(k):
         raise CalibrationError(f"{topic}: CameraInfo is uncalibrated (size {width}x{height}, "
                                "K all zero); calibrate the camera or pass --intrinsics")
