@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.rig import Rig
 from cusfm_ros.errors import CalibrationError
@@ -58,6 +60,15 @@ class KeyframeSet:
         for keyframe in self.keyframes:
             out.setdefault(keyframe.sample_id, []).append(keyframe)
         return out
+
+    def sample_poses(self) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """Rig samples in time order: their ids, stamps (earliest image, ns) and
+        ``world_from_rig`` (N, 4, 4) read from each sample's first image."""
+        samples = self.samples()
+        order = sorted(samples, key=lambda s: min(k.stamp_ns for k in samples[s]))
+        stamps = np.array([min(k.stamp_ns for k in samples[s]) for s in order], np.int64)
+        poses = np.stack([self.world_from_rig(samples[s][0]).matrix() for s in order])
+        return order, stamps, poses
 
     def world_from_rig(self, keyframe: Keyframe) -> Rigid3:
         return keyframe.world_from_cam * self.rig[keyframe.camera_name].rig_from_cam.inverse()

@@ -82,13 +82,6 @@ class PoseGraphStage:
         self.options = options
         self.features = features
 
-    def _samples(self, keyframes: KeyframeSet):
-        samples = keyframes.samples()
-        order = sorted(samples, key=lambda s: min(k.stamp_ns for k in samples[s]))
-        stamps = np.array([min(k.stamp_ns for k in samples[s]) for s in order], np.int64)
-        poses = np.stack([keyframes.world_from_rig(samples[s][0]).matrix() for s in order])
-        return order, stamps, poses
-
     def _loop_measurement(self, loop: dict, keyframes: KeyframeSet, samples: dict,
                           images: dict, store, matcher) -> tuple[Rigid3, str]:
         """rig_match_from_rig_query for one verified loop, and how it was measured."""
@@ -137,7 +130,7 @@ class PoseGraphStage:
         constraints, and per rig sample the node and transform giving world_from_rig."""
         keyframes = load_keyframes(run_dir)
         loops = read_loops(run_dir)
-        order, stamps, rig_poses = self._samples(keyframes)
+        order, stamps, rig_poses = keyframes.sample_poses()
         samples = keyframes.samples()
         rig = keyframes.rig
         if self.options.frame_type == "rig":

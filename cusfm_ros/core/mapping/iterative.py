@@ -1,0 +1,224 @@
+"""Iterative triangulation and bundle adjustment (paper section 3.7).
+
+Stage 1 (robust loss, relaxed threshold), repeated until the set of inlier observations
+settles: triangulate the tracks without a point -> bundle adjustment -> re-score every
+observation of every track against the refined poses and points, drop the outliers and take
+back observations that now fit -> tracks left with fewer than two inliers go back to
+triangulation. Stage 2: strict threshold, no robust loss, the final adjustment.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from cusfm_ros.core.mapping.bundle_adjustment import (BundleAdjuster, BundleOptions,
+                                                      BundleProblem, RelativeFactors)
+from cusfm_ros.core.mapping.triangulation import TriangulationOptions, triangulate_tracks
+from cusfm_ros.errors import ConfigError, MappingError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class IterativeMappingOptions:
+    triangulation_method: str = "dlt"
+    triangulation_max_error_px: float = 4.0
+    min_triangulation_angle_deg: float = 1.0
+    stage1_max_error_px: float = 4.0
+    """Relaxed outlier threshold of the robust stage."""
+    stage2_max_error_px: float = 2.0
+    """Strict outlier threshold of the final, non-robust stage."""
+    max_rounds: int = 4
+    """Triangulate -> BA -> filter rounds of stage 1 at most."""
+    converged_fraction: float = 0.01
+    """Stage 1 stops when fewer than this fraction of observations change status."""
+    min_points: int = 20
+
+    def __post_init__(self) -> None:
+        if not 0 < self.stage2_max_error_px <= self.stage1_max_error_px:
+            raise ConfigError("mapping: need 0 < stage2_max_error_px <= stage1_max_error_px")
+        if self.max_rounds < 1:
+            raise ConfigError("mapping: max_rounds must be at least 1")
+
+
+@dataclass
+class MappingInput:
+    """Everything but the points: the pose structure (a ``BundleProblem`` template without
+    observations), the tracks and their normalized observations."""
+
+    template: BundleProblem
+    image_focal_px: np.ndarray
+    """(I,) focal length of each image's camera (pixel thresholds -> normalized units)."""
+    obs_image: np.ndarray
+    """(M,) image of each observation, grouped by track."""
+    obs_xy: np.ndarray
+    """(M, 2) normalized observations."""
+    offsets: np.ndarray
+    """(T + 1,) track boundaries."""
+    obs_next_node: np.ndarray | None = None
+    obs_alpha: np.ndarray | None = None
+
+
+@dataclass
+class MappingResult:
+    world_from_node: np.ndarray
+    node_from_sensor: np.ndarray
+    points: np.ndarray
+    """(T, 3), NaN for tracks without a point."""
+    inliers: np.ndarray
+    """(M,) observation used in the final adjustment."""
+    rounds: list[dict]
+    seconds: float
+
+
+class IterativeMapper:
+    def __init__(self, options: IterativeMappingOptions = IterativeMappingOptions(),
+                 bundle: BundleOptions = BundleOptions()) -> None:
+        self.options = options
+        self.bundle = bundle
+
+    def _problem(self, data: MappingInput, poses: BundleProblem, points: np.ndarray,
+                 active: np.ndarray) -> tuple[BundleProblem, np.ndarray]:
+        """The BA problem over the active observations; and the track of each point."""
+        track_of_obs = np.repeat(np.arange(len(data.offsets) - 1), np.diff(data.offsets))
+        tracks = np.unique(track_of_obs[active])
+        index = np.full(len(points), -1)
+        index[tracks] = np.arange(len(tracks))
+        rolling = {}
+        if data.obs_next_node is not None:
+            rolling = {"obs_next_node": data.obs_next_node[active],
+                       "obs_alpha": data.obs_alpha[active]}
+        problem = replace(poses, points=points[tracks], obs_image=data.obs_image[active],
+                          obs_point=index[track_of_obs[active]], obs_xy=data.obs_xy[active],
+                          **rolling)
+        return problem, tracks
+
+    def _score(self, data: MappingInput, poses: BundleProblem, points: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel-equivalent error and depth of every observation against its track's point."""
+        track_of_obs = np.repeat(np.arange(len(data.offsets) - 1), np.diff(data.offsets))
+        problem, _ = self._problem(data, poses, points, np.ones(len(data.obs_xy), bool))
+        problem.points = points
+        problem.obs_point = track_of_obs
+        with np.errstate(invalid="ignore"):
+            error, depth = problem.residuals()
+        error = error * data.image_focal_px[data.obs_image]
+        return np.where(np.isfinite(error), error, np.inf), depth
+
+    def _filter(self, data: MappingInput, poses: BundleProblem, points: np.ndarray,
+                threshold_px: float) -> tuple[np.ndarray, int, np.ndarray]:
+        """Inlier observations under ``threshold_px`` (tracks left with fewer than two lose
+        their point, in place), how many tracks lost it, and every observation's error."""
+        num_tracks = len(data.offsets) - 1
+        track_of_obs = np.repeat(np.arange(num_tracks), np.diff(data.offsets))
+        error_px, depth = self._score(data, poses, points)
+        has_point = np.isfinite(points[:, 0])
+        active = has_point[track_of_obs] & (error_px < threshold_px) & (depth > 0)
+        counts = np.bincount(track_of_obs[active], minlength=num_tracks)
+        lost = has_point & (counts < 2)
+        active &= ~lost[track_of_obs]
+        points[lost] = np.nan
+        return active, int(lost.sum()), error_px
+
+    def _triangulate(self, data: MappingInput, poses: BundleProblem, tracks: np.ndarray,
+                     points: np.ndarray, active: np.ndarray) -> int:
+        """Triangulate ``tracks`` (indices) in place; returns how many got a point."""
+        o = self.options
+        if len(tracks) == 0:
+            return 0
+        lengths = np.diff(data.offsets)[tracks]
+        obs = np.concatenate([np.arange(data.offsets[t], data.offsets[t + 1]) for t in tracks])
+        sub = replace(data, obs_image=data.obs_image[obs], obs_xy=data.obs_xy[obs],
+                      offsets=np.r_[0, np.cumsum(lengths)],
+                      obs_next_node=None if data.obs_next_node is None
+                      else data.obs_next_node[obs],
+                      obs_alpha=None if data.obs_alpha is None else data.obs_alpha[obs])
+        problem, _ = self._problem(sub, poses, np.zeros((len(tracks), 3)),
+                                   np.ones(len(obs), bool))
+        focal = float(np.median(data.image_focal_px))
+        options = TriangulationOptions(method=o.triangulation_method,
+                                       max_error=o.triangulation_max_error_px / focal,
+                                       min_angle_deg=o.min_triangulation_angle_deg)
+        result = triangulate_tracks(problem.observation_poses(), sub.obs_xy, sub.offsets,
+                                    options)
+        points[tracks] = result.points
+        active[obs] = result.inliers
+        return int(result.valid.sum())
+
+    def solve(self, data: MappingInput) -> MappingResult:
+        o = self.options
+        started = time.perf_counter()
+        num_tracks = len(data.offsets) - 1
+        poses = data.template
+        points = np.full((num_tracks, 3), np.nan)
+        active = np.zeros(len(data.obs_xy), bool)
+        triangulated = self._triangulate(data, poses, np.arange(num_tracks), points, active)
+        logger.info("mapping: %d of %d tracks triangulated (%d observations)", triangulated,
+                    num_tracks, int(active.sum()))
+        if triangulated < o.min_points:
+            raise MappingError(
+                f"too few matches to triangulate: {triangulated} points from {num_tracks} "
+                f"tracks (need {o.min_points}); check that the pairs overlap, the pose prior "
+                f"and the motion (pure rotation gives no parallax)")
+        rounds = []
+        adjuster = BundleAdjuster(self.bundle)
+        stage, round_ = 1, 0
+        while True:
+            robust = stage == 1
+            threshold_px = o.stage1_max_error_px if stage == 1 else o.stage2_max_error_px
+            tick = time.perf_counter()
+            if stage == 2:  # the strict stage starts from the strictly filtered set
+                active, _, _ = self._filter(data, poses, points, threshold_px)
+            problem, tracks = self._problem(data, poses, points, active)
+            result = adjuster.solve(problem, robust=robust)
+            poses = replace(poses, world_from_node=result.world_from_node,
+                            node_from_sensor=result.node_from_sensor)
+            points[tracks] = result.points
+            before = active
+            active, lost, error_px = self._filter(data, poses, points, threshold_px)
+            retried = added = 0
+            if stage == 1:
+                retry = np.nonzero(~np.isfinite(points[:, 0]))[0]
+                retried = len(retry)
+                added = self._triangulate(data, poses, retry, points, active)
+            changed = int(np.sum(active != before))
+            entry = {"stage": stage, "round": round_ + 1, "points": int(len(tracks)),
+                     "observations": int(problem.obs_image.size),
+                     "cost_before": result.error_before, "cost_after": result.error_after,
+                     "iterations": result.iterations,
+                     "mean_error_px": float(np.mean(error_px[before])),
+                     "rejected_tracks": int(lost), "retriangulated": added,
+                     "changed_observations": changed, "seconds": time.perf_counter() - tick}
+            rounds.append(entry)
+            logger.info("mapping stage %d round %d: %d points, %d observations, cost %.4g -> "
+                        "%.4g (%d it), mean error %.3f px, %d tracks dropped, %d/%d "
+                        "re-triangulated, %.1f s", stage, round_ + 1, entry["points"],
+                        entry["observations"], result.error_before, result.error_after,
+                        result.iterations, entry["mean_error_px"], entry["rejected_tracks"],
+                        added, retried, entry["seconds"])
+            if stage == 2:
+                break
+            round_ += 1
+            converged = changed < o.converged_fraction * max(int(active.sum()), 1)
+            if converged or round_ >= o.max_rounds:
+                stage, round_ = 2, 0
+        if np.sum(np.isfinite(points[:, 0])) < o.min_points:
+            raise MappingError(f"mapping kept only {int(np.isfinite(points[:, 0]).sum())} "
+                               f"points after outlier removal (need {o.min_points})")
+        return MappingResult(poses.world_from_node, poses.node_from_sensor, points, active,
+                             rounds, time.perf_counter() - started)
+
+
+def empty_template(world_from_node, node_from_sensor, image_node, image_sensor, image_sigma,
+                   relative: RelativeFactors, fixed_nodes, optimize_extrinsics: bool
+                   ) -> BundleProblem:
+    """A ``BundleProblem`` with the pose structure and no observations yet."""
+    return BundleProblem(np.asarray(world_from_node, float), np.asarray(node_from_sensor, float),
+                         np.asarray(image_node), np.asarray(image_sensor),
+                         np.asarray(image_sigma, float), np.zeros((0, 3)),
+                         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
+                         relative, np.asarray(fixed_nodes, np.int64), optimize_extrinsics)
