@@ -146,3 +146,13 @@ def test_undistort_image_checks_size():
 def test_bad_camera_dicts_raise_named_errors(data, message):
     with pytest.raises(CalibrationError, match=message):
         camera_from_dict(data)
+
+
+def test_pixel_size_in_normalized_units_matches_the_focal_length_at_the_centre(camera):
+    centre = np.array([[(camera.width - 1) / 2.0, (camera.height - 1) / 2.0]])
+    scale = camera.normalized_per_px(centre)[0]
+    fy_over_fx = getattr(camera, "fy", camera.focal_px) / camera.focal_px
+    assert scale == pytest.approx(1.0 / (camera.focal_px * np.sqrt(fy_over_fx)), rel=0.05)
+    off_axis = centre + [0.3 * camera.height, 0.0]  # ~25-60 degrees off the axis
+    # no lens here shrinks normalized coordinates (tan of the angle) off the axis
+    assert camera.normalized_per_px(off_axis)[0] >= scale * (1 - 1e-9)

@@ -80,7 +80,6 @@ class PoseStructure:
     """Keyframes in the order of image indices."""
     node_stamps_ns: np.ndarray
     template: object
-    image_focal_px: np.ndarray
     next_node: np.ndarray
     """(N,) node to interpolate towards under a rolling shutter (-1: none)."""
 
@@ -133,16 +132,14 @@ class MappingStage:
         cameras = rig.names
         image_camera = np.array([cameras.index(k.camera_name) for k in images], np.int64)
         rig_from_cam = np.stack([rig[c].rig_from_cam.matrix() for c in cameras])
-        focal = np.array([rig[k.camera_name].camera.focal_px for k in images])
         unknown = sorted(set(o.fixed_samples) - set(position))
         if unknown:
             raise ConfigError(f"mapping.fixed_samples names unknown rig samples {unknown[:5]}")
         fixed_samples = np.array([position[s] for s in o.fixed_samples], np.int64)
-        sigma = b.observation_sigma_px / focal
         if o.frame_type == "rig":
             sequential = _relative(np.arange(len(sample_ids) - 1), np.arange(1, len(sample_ids)),
                                    input_poses, b.relative_sigma_m, b.relative_sigma_deg)
-            template = empty_template(start, rig_from_cam, image_sample, image_camera, sigma,
+            template = empty_template(start, rig_from_cam, image_sample, image_camera,
                                       sequential, fixed_samples, o.optimize_extrinsics)
             node_stamps = sample_stamps
             next_node = np.r_[np.arange(1, len(sample_ids)), len(sample_ids) - 2]
@@ -163,13 +160,13 @@ class MappingStage:
                                          start_cam, b.rigid_sigma_m, b.rigid_sigma_deg))
             fixed = np.nonzero(np.isin(image_sample, fixed_samples))[0]
             template = empty_template(start_cam, np.eye(4)[None], np.arange(len(images)),
-                                      np.zeros(len(images), np.int64), sigma,
+                                      np.zeros(len(images), np.int64),
                                       _concat(factors), fixed, False)
             node_stamps = np.array([k.stamp_ns for k in images], np.int64)
         if len(node_stamps) < 2:
             next_node = np.full(len(node_stamps), -1)
         return PoseStructure(sample_ids, sample_stamps, input_poses, start, images,
-                             node_stamps, template, focal, next_node)
+                             node_stamps, template, next_node)
 
     # ----------------------------------------------------------------------- observations
     def observations(self, run_dir: Path, keyframes: KeyframeSet, structure: PoseStructure
@@ -196,12 +193,14 @@ class MappingStage:
             sel = tracks.image == i
             obs_uv[sel] = keypoints[i][tracks.keypoint[sel]]
         obs_xy = np.zeros_like(obs_uv)
+        obs_per_px = np.ones(len(obs_uv))
         front = np.zeros(len(obs_uv), bool)
         rig = keyframes.rig
         for name in rig.names:
             sel = np.isin(tracks.image, [i for i, k in enumerate(images)
                                          if k.camera_name == name])
             obs_xy[sel], front[sel] = rig[name].camera.normalized(obs_uv[sel])
+            obs_per_px[sel] = rig[name].camera.normalized_per_px(obs_uv[sel])
         keep_track = np.add.reduceat(front.astype(np.int64), tracks.offsets[:-1]) >= 2 if len(
             tracks) else np.zeros(0, bool)
         keep = front & np.repeat(keep_track, tracks.lengths)
@@ -209,8 +208,8 @@ class MappingStage:
             tracks) else np.zeros(0, np.int64)
         offsets = np.r_[0, np.cumsum(lengths)].astype(np.int64)
         obs_image, obs_keypoint = tracks.image[keep], tracks.keypoint[keep]
-        data = MappingInput(structure.template, structure.image_focal_px, obs_image,
-                            obs_xy[keep], offsets)
+        data = MappingInput(structure.template, obs_image, obs_xy[keep], obs_per_px[keep],
+                            offsets)
         if self.options.rolling_shutter_line_delay_s > 0:
             data.obs_next_node, data.obs_alpha = self._rolling(structure, obs_image,
                                                                obs_uv[keep][:, 1])

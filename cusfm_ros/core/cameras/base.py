@@ -109,6 +109,17 @@ class CameraBase:
         front = rays[:, 2] > min_z
         return rays[:, :2] / np.where(front, rays[:, 2], 1.0)[:, None], front
 
+    def normalized_per_px(self, uv_px: np.ndarray, step_px: float = 0.5) -> np.ndarray:
+        """(N,) size of one pixel in normalized coordinates at each pixel: the square root of
+        the Jacobian determinant of ``normalized`` (1 / f for a pinhole; it grows towards the
+        edge of wide-angle lenses). Pixel-unit noise and thresholds scale by it."""
+        uv = np.asarray(uv_px, np.float64).reshape(-1, 2)
+        centre, _ = self.normalized(uv, min_z=1e-6)
+        du, _ = self.normalized(uv + [step_px, 0.0], min_z=1e-6)
+        dv, _ = self.normalized(uv + [0.0, step_px], min_z=1e-6)
+        ju, jv = (du - centre) / step_px, (dv - centre) / step_px
+        return np.sqrt(np.abs(ju[:, 0] * jv[:, 1] - ju[:, 1] * jv[:, 0]))
+
     def __eq__(self, other: object) -> bool:
         return isinstance(other, CameraBase) and self.to_dict() == other.to_dict()
 

@@ -24,6 +24,11 @@ class FisheyeCamera(AngularCamera):
                 f"got fx={self.fx}, fy={self.fy}")
 
     @property
+    def focal_px(self) -> float:
+        """Horizontal focal length in pixels (pixel-size thresholds use it)."""
+        return self.fx
+
+    @property
     def K(self) -> np.ndarray:  # noqa: N802
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 

@@ -94,14 +94,15 @@ class BundleProblem:
     """(I,) node of each image."""
     image_sensor: np.ndarray
     """(I,) sensor (camera) of each image."""
-    image_sigma: np.ndarray
-    """(I,) observation sigma in normalized units (sigma_px / focal_px)."""
     points: np.ndarray
     """(P, 3) initial points."""
     obs_image: np.ndarray
     obs_point: np.ndarray
     obs_xy: np.ndarray
     """(M, 2) normalized observations."""
+    obs_sigma: np.ndarray
+    """(M,) observation sigma in normalized units (sigma_px times the size of a pixel there,
+    ``CameraBase.normalized_per_px``)."""
     relative: RelativeFactors
     fixed_nodes: np.ndarray
     optimize_extrinsics: bool = False
@@ -201,10 +202,11 @@ class BundleAdjuster:
         next_node = pr.obs_next_node if rolling else None
         for m in range(len(pr.obs_image)):
             image = pr.obs_image[m]
-            sigma = float(pr.image_sigma[image])
-            noise = noises.get(sigma)
+            # one noise model per 0.5 % band of sigma (wide-angle lenses vary across the image)
+            band = int(np.round(np.log(pr.obs_sigma[m]) * 200.0))
+            noise = noises.get(band)
             if noise is None:
-                noise = noises[sigma] = self._observation_noise(sigma, robust)
+                noise = noises[band] = self._observation_noise(np.exp(band / 200.0), robust)
             node, sensor = pr.image_node[image], pr.image_sensor[image]
             measured = pr.obs_xy[m]
             if pr.optimize_extrinsics:

@@ -51,12 +51,12 @@ class MappingInput:
     observations), the tracks and their normalized observations."""
 
     template: BundleProblem
-    image_focal_px: np.ndarray
-    """(I,) focal length of each image's camera (pixel thresholds -> normalized units)."""
     obs_image: np.ndarray
     """(M,) image of each observation, grouped by track."""
     obs_xy: np.ndarray
     """(M, 2) normalized observations."""
+    obs_per_px: np.ndarray
+    """(M,) size of a pixel in normalized units at each observation (thresholds in pixels)."""
     offsets: np.ndarray
     """(T + 1,) track boundaries."""
     obs_next_node: np.ndarray | None = None
@@ -94,6 +94,7 @@ class IterativeMapper:
                        "obs_alpha": data.obs_alpha[active]}
         problem = replace(poses, points=points[tracks], obs_image=data.obs_image[active],
                           obs_point=index[track_of_obs[active]], obs_xy=data.obs_xy[active],
+                          obs_sigma=self.bundle.observation_sigma_px * data.obs_per_px[active],
                           **rolling)
         return problem, tracks
 
@@ -106,7 +107,7 @@ class IterativeMapper:
         problem.obs_point = track_of_obs
         with np.errstate(invalid="ignore"):
             error, depth = problem.residuals()
-        error = error * data.image_focal_px[data.obs_image]
+        error = error / data.obs_per_px
         return np.where(np.isfinite(error), error, np.inf), depth
 
     def _filter(self, data: MappingInput, poses: BundleProblem, points: np.ndarray,
@@ -133,18 +134,17 @@ class IterativeMapper:
         lengths = np.diff(data.offsets)[tracks]
         obs = np.concatenate([np.arange(data.offsets[t], data.offsets[t + 1]) for t in tracks])
         sub = replace(data, obs_image=data.obs_image[obs], obs_xy=data.obs_xy[obs],
+                      obs_per_px=data.obs_per_px[obs],
                       offsets=np.r_[0, np.cumsum(lengths)],
                       obs_next_node=None if data.obs_next_node is None
                       else data.obs_next_node[obs],
                       obs_alpha=None if data.obs_alpha is None else data.obs_alpha[obs])
         problem, _ = self._problem(sub, poses, np.zeros((len(tracks), 3)),
                                    np.ones(len(obs), bool))
-        focal = float(np.median(data.image_focal_px))
         options = TriangulationOptions(method=o.triangulation_method,
-                                       max_error=o.triangulation_max_error_px / focal,
                                        min_angle_deg=o.min_triangulation_angle_deg)
         result = triangulate_tracks(problem.observation_poses(), sub.obs_xy, sub.offsets,
-                                    options)
+                                    options, o.triangulation_max_error_px * sub.obs_per_px)
         points[tracks] = result.points
         active[obs] = result.inliers
         return int(result.valid.sum())
@@ -213,12 +213,12 @@ class IterativeMapper:
                              rounds, time.perf_counter() - started)
 
 
-def empty_template(world_from_node, node_from_sensor, image_node, image_sensor, image_sigma,
+def empty_template(world_from_node, node_from_sensor, image_node, image_sensor,
                    relative: RelativeFactors, fixed_nodes, optimize_extrinsics: bool
                    ) -> BundleProblem:
     """A ``BundleProblem`` with the pose structure and no observations yet."""
     return BundleProblem(np.asarray(world_from_node, float), np.asarray(node_from_sensor, float),
                          np.asarray(image_node), np.asarray(image_sensor),
-                         np.asarray(image_sigma, float), np.zeros((0, 3)),
-                         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
-                         relative, np.asarray(fixed_nodes, np.int64), optimize_extrinsics)
+                         np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                         np.zeros((0, 2)), np.zeros(0), relative,
+                         np.asarray(fixed_nodes, np.int64), optimize_extrinsics)

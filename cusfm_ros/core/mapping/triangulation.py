@@ -140,7 +140,7 @@ def _pair_table(length: int, max_pairs: int) -> np.ndarray:
     return np.array(list(combinations(range(length), 2))[:max_pairs], dtype=np.int64)
 
 
-def _best_proposals(cam_from_world, xy, offsets, options) -> np.ndarray:
+def _best_proposals(cam_from_world, xy, offsets, options, max_error) -> np.ndarray:
     """(T, 3) best RANSAC proposal per track (NaN where none is finite)."""
     lengths = np.diff(offsets)
     num_tracks = len(lengths)
@@ -169,7 +169,7 @@ def _best_proposals(cam_from_world, xy, offsets, options) -> np.ndarray:
         within = np.arange(len(prop_of)) - np.repeat(np.cumsum(obs_len) - obs_len, obs_len)
         obs = offsets[track_of][prop_of] + within
         error, depth = _residuals(points[prop_of], cam_from_world[obs], xy[obs])
-        inlier = (error < options.max_error) & (depth > 0)
+        inlier = (error < max_error[obs]) & (depth > 0)
         count = np.add.reduceat(inlier.astype(np.int64), np.cumsum(obs_len) - obs_len)
         count[~np.all(np.isfinite(points), axis=1)] = -1
         order = np.lexsort((-count, track_of))  # per track, most inliers first (stable)
@@ -180,8 +180,8 @@ def _best_proposals(cam_from_world, xy, offsets, options) -> np.ndarray:
 
 
 def triangulate_tracks(cam_from_world: np.ndarray, xy: np.ndarray, offsets: np.ndarray,
-                       options: TriangulationOptions = TriangulationOptions()
-                       ) -> TriangulationResult:
+                       options: TriangulationOptions = TriangulationOptions(),
+                       max_error: np.ndarray | None = None) -> TriangulationResult:
     """Triangulate every track at once.
 
     Args:
@@ -189,6 +189,8 @@ def triangulate_tracks(cam_from_world: np.ndarray, xy: np.ndarray, offsets: np.n
             that rolling-shutter rows can carry their own pose).
         xy: (M, 2) normalized observations, grouped by track.
         offsets: (T + 1,) track t owns observations offsets[t]:offsets[t + 1].
+        max_error: (M,) per-observation threshold (normalized units) replacing
+            ``options.max_error`` (a pixel threshold varies across wide-angle images).
     """
     cam_from_world = np.asarray(cam_from_world, np.float64)
     xy = np.asarray(xy, np.float64)
@@ -199,19 +201,21 @@ def triangulate_tracks(cam_from_world: np.ndarray, xy: np.ndarray, offsets: np.n
         return TriangulationResult(np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, bool))
     if np.any(lengths < 2):
         raise ConfigError("triangulate_tracks: every track needs at least two observations")
+    max_error = (np.full(len(xy), options.max_error) if max_error is None
+                 else np.asarray(max_error, np.float64))
     starts = offsets[:-1]
     track_of_obs = np.repeat(np.arange(num_tracks), lengths)
     origin = _rays(cam_from_world[starts], xy[starts])[0]
     inliers = np.zeros(len(xy), bool)
-    points = _best_proposals(cam_from_world, xy, offsets, options)
+    points = _best_proposals(cam_from_world, xy, offsets, options, max_error)
     for _ in range(2):  # refit from the inliers, then once more from the refit's inliers
         error, depth = _residuals(points[track_of_obs], cam_from_world, xy)
-        inliers = (error < options.max_error) & (depth > 0)
+        inliers = (error < max_error) & (depth > 0)
         enough = np.add.reduceat(inliers.astype(np.int64), starts) >= 2
         points = np.where(enough[:, None], _refit(cam_from_world, xy, inliers.astype(float),
                                                   starts, origin, options.method), np.nan)
     error, depth = _residuals(points[track_of_obs], cam_from_world, xy)
-    inliers = (error < options.max_error) & (depth > 0) & np.isfinite(points[track_of_obs, 0])
+    inliers = (error < max_error) & (depth > 0) & np.isfinite(points[track_of_obs, 0])
     valid = np.add.reduceat(inliers.astype(np.int64), starts) >= 2
     # triangulation angle: largest angle between an inlier ray and the track's first inlier ray
     # (a lower bound of the largest pairwise angle, within a factor of two of it)
