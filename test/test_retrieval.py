@@ -107,11 +107,16 @@ def test_database_ranks_same_place_first_and_excludes_neighbours(rng):
 
 
 @pytest.mark.usefixtures("models_ready")
-def test_loops_and_pose_graph_on_a_two_lap_stereo_sequence(tmp_path):
-    """An indoor loop driven twice with drifting odometry: loops are checked against exact
-    ground truth, and the pose graph must remove most of the drift."""
+def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
+    """An indoor loop driven twice with drifting odometry, through every stage of `cusfm map`:
+    loops are checked against exact ground truth, the pose graph must remove most of the drift,
+    the mapper more, and every output must be complete and readable."""
+    import pycolmap
+
     from cusfm_ros.cli.main import main
     from cusfm_ros.core.evaluation import absolute_trajectory_error
+    from cusfm_ros.io.extrinsics_yaml import read_extrinsics
+    from cusfm_ros.io.ply import read_ply
     from cusfm_ros.io.tum import read_tum
     from cusfm_ros.sim.generator import SimulationOptions, Simulator
     from cusfm_ros.sim.loop_truth import evaluate_loops
@@ -122,11 +127,11 @@ def test_loops_and_pose_graph_on_a_two_lap_stereo_sequence(tmp_path):
                     ).generate(tmp_path / "sim")
     run = tmp_path / "run"
     args = ["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
-            "--max-keypoints", "1024"]
+            "--max-keypoints", "1024", "--rgb"]
     assert main(args) == 0
     report = json.loads((run / "report.json").read_text())
     assert set(report["stages"]) == {"keyframes", "features", "vocabulary", "loops", "pairs",
-                                     "pose_graph"}
+                                     "pose_graph", "matching", "mapping", "export"}
     loops = json.loads((run / "loops" / "loops.json").read_text())["loops"]
     assert {"query", "match", "query_stamp_ns", "match_stamp_ns", "inliers", "score"} <= set(
         loops[0])
@@ -136,10 +141,31 @@ def test_loops_and_pose_graph_on_a_two_lap_stereo_sequence(tmp_path):
     pairs = (run / "pairs" / "pairs.txt").read_text().splitlines()
     assert len(pairs) == report["stages"]["pairs"]["pairs"] and len(pairs[0].split()) == 2
     truth = read_tum(sim / "ground_truth.tum")
-    raw = absolute_trajectory_error(truth, read_tum(run / "keyframes" / "initial_poses.tum"))
-    refined = absolute_trajectory_error(truth, read_tum(run / "pose_graph" / "poses.tum"))
-    assert refined.rmse < 0.5 * raw.rmse, (raw.rmse, refined.rmse)
+    raw = absolute_trajectory_error(truth, read_tum(run / "initial_poses.tum"))
+    pgo = absolute_trajectory_error(truth, read_tum(run / "pose_graph" / "poses.tum"))
+    final = absolute_trajectory_error(truth, read_tum(run / "poses.tum"))
+    assert pgo.rmse < 0.5 * raw.rmse, (raw.rmse, pgo.rmse)
+    assert final.rmse < 0.6 * pgo.rmse and final.rmse < 0.05, (pgo.rmse, final.rmse)
+    # outputs: COLMAP model (read by pycolmap), PLY, extrinsics, report summary
+    summary = report["summary"]
+    assert summary["points"] > 1000 and summary["mean_reprojection_error_px"] < 1.0
+    assert set(summary) >= {"keyframes", "pairs", "verified_matches", "tracks", "points",
+                            "observations", "seconds_per_stage"}
+    assert report["versions"]["gtsam"] and report["options"]["mapping"]["frame_type"] == "rig"
+    model = pycolmap.Reconstruction(str(run / "sparse"))
+    assert model.num_points3D() == summary["points"] and model.num_images() == 240
+    assert model.compute_num_observations() == summary["observations"]
+    points, rgb = read_ply(run / "points.ply")
+    assert len(points) == summary["points"] and rgb is not None and rgb.mean() > 10
+    extrinsics = read_extrinsics(run / "extrinsics.yaml")
+    assert sorted(extrinsics.cameras) == ["front_stereo_left", "front_stereo_right"]
     # resumable: a second run reuses the expensive stages
     assert main(args) == 0
     again = json.loads((run / "report.json").read_text())["stages"]
     assert again["keyframes"]["reused"] and again["features"]["extracted"] == 0
+    assert again["matching"]["matched_now"] == 0 and again["mapping"]["reused"]
+    # camera frame type: a pose per image, tied by the extrinsics
+    assert main(args + ["--steps", "mapping", "export", "--overwrite", "--frame-type",
+                        "camera"]) == 0
+    camera_mode = absolute_trajectory_error(truth, read_tum(run / "poses.tum"))
+    assert camera_mode.rmse < 0.6 * pgo.rmse, (pgo.rmse, camera_mode.rmse)

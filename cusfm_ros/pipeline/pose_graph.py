@@ -50,7 +50,13 @@ class PairStage:
     def solve(self, run_dir: str | Path, overwrite: bool = False) -> StageResult:
         run_dir, started = Path(run_dir), time.perf_counter()
         keyframes = load_keyframes(run_dir)
-        loops = read_loops(run_dir) if self.options.mode == "view_graph" else []
+        loops = []
+        if self.options.mode == "view_graph":
+            if (run_dir / "loops" / "loops.json").is_file():
+                loops = read_loops(run_dir)
+            else:
+                logger.warning("pairs: no loops/loops.json (loops stage skipped?): the view "
+                               "graph gets sequential and extrinsic pairs only")
         pairs = select_pairs(keyframes, [(x["query_image"], x["match_image"]) for x in loops],
                              self.options)
         out = run_dir / "pairs" / "pairs.txt"

@@ -1,8 +1,9 @@
 """Console-script targets of ``ros2 run cusfm_ros <mapper|localizer|extrinsic_calibration>``.
 
 Each checks for rclpy first (one clear line and exit 1 without ROS), then starts its node.
-The nodes are thin adapters over ``cusfm_ros.pipeline``; a node whose pipeline has not landed
-says so instead of pretending to run.
+The nodes are thin adapters over ``cusfm_ros.pipeline`` (the mapper: ``ros/mapper_node.py``);
+a node whose pipeline has not landed (localizer, extrinsic_calibration) says so instead of
+pretending to run.
 """
 
 from __future__ import annotations
