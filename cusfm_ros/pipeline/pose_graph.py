@@ -121,6 +121,8 @@ class PoseGraphStage:
                                           StereoPoseOptions(ransac_threshold=threshold))
             m_from_q, how = result.map_from_left, "stereo"
         else:
+            if "match_cam_from_query_cam" not in loop:
+                raise GeometryError("no stereo partner image in the query's rig sample")
             relative = loop["match_cam_from_query_cam"]
             rotation = Rigid3.from_quat_xyzw(relative["quat_xyzw"], [0, 0, 0]).rotation
             # two-view translation direction; its length comes from the odometry prior
@@ -130,6 +132,23 @@ class PoseGraphStage:
             m_from_q = Rigid3(rotation, np.asarray(relative["translation_direction"]) * distance)
             how = "two-view + odometry scale"
         return rig_from_m * m_from_q * rig_from_q.inverse(), how
+
+    def _sequential_pairs(self, keyframes: KeyframeSet) -> list[dict]:
+        """Consecutive keyframes of each stereo camera (one of each pair), as loop-like
+        records measured by the stereo relative pose."""
+        rig = keyframes.rig
+        chosen = [name for name in rig.names
+                  if (partner := stereo_partner(rig, name)) is not None and name < partner]
+        if not chosen:
+            logger.warning("pose_graph: visual_sequential needs stereo pairs; this rig has "
+                           "none, so only odometry joins consecutive samples")
+        records = []
+        for name in chosen:
+            frames = sorted((k for k in keyframes.keyframes if k.camera_name == name),
+                            key=lambda k: k.stamp_ns)
+            records += [{"query_image": b.image_name, "match_image": a.image_name,
+                         "kind": "sequential"} for a, b in zip(frames, frames[1:])]
+        return records
 
     def build(self, run_dir: Path):
         """The graph: initial node poses, odometry chains, rigid (extrinsic) edges, loop
@@ -163,6 +182,8 @@ class PoseGraphStage:
         images_by_name = {k.image_name: k for k in keyframes.keyframes}
         constraints, kinds, skipped = [], {}, []
         matcher = None
+        if self.options.visual_sequential:
+            loops = loops + self._sequential_pairs(keyframes)
         with open_store(run_dir, self.features) as store:
             for loop in loops:
                 query = images_by_name[loop["query_image"]]
@@ -171,6 +192,11 @@ class PoseGraphStage:
                     continue
                 try:
                     matcher = matcher or make_matcher(self.features)
+                    if not store.has_matches(query.image_name, match.image_name) and \
+                            not store.has_matches(match.image_name, query.image_name):
+                        store.put_matches(query.image_name, match.image_name, matcher.match(
+                            store.features(query.image_name),
+                            store.features(match.image_name)))
                     measured, how = self._loop_measurement(loop, keyframes, samples,
                                                            images_by_name, store, matcher)
                 except GeometryError as exc:
@@ -180,7 +206,9 @@ class PoseGraphStage:
                     measured = (rig[match.camera_name].rig_from_cam.inverse() * measured
                                 * rig[query.camera_name].rig_from_cam)
                 constraints.append(LoopConstraint(node_of[match.image_name],
-                                                  node_of[query.image_name], measured.matrix()))
+                                                  node_of[query.image_name], measured.matrix(),
+                                                  robust=loop.get("kind") != "sequential"))
+                how = f"{loop.get('kind', 'loop')} {how}"
                 kinds[how] = kinds.get(how, 0) + 1
         for reason in skipped[:5]:
             logger.warning("pose_graph: loop skipped (%s)", reason)

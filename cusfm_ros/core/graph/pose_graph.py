@@ -35,6 +35,14 @@ class PoseGraphOptions:
     extrinsic_sigma_deg: float = 0.01
     frame_type: str = "rig"
     """``rig``: one node per rig sample; ``camera``: one node per image + extrinsic factors."""
+    absolute_prior_sigma_m: float = 0.0
+    """> 0: every node gets a prior at its initial pose (GNSS-like priors, or ground truth +
+    noise); they fix the gauge instead of the first node."""
+    absolute_prior_sigma_deg: float = 30.0
+    visual_sequential: bool = False
+    """Also measure each consecutive keyframe pair by the stereo relative pose (cameras with a
+    stereo partner) and add it like a loop: for poor or noisy odometry, with larger
+    ``odometry_sigma_*``."""
     max_iterations: int = 100
 
     def __post_init__(self) -> None:
@@ -50,6 +58,9 @@ class LoopConstraint:
     index1: int
     node0_from_node1: np.ndarray
     """(4, 4) measured relative pose, rig frames."""
+    robust: bool = True
+    """Robust loss (loops: a wrong one must not bend the map). Consecutive visual edges go
+    without: from a noisy start their residuals are large though they are right."""
 
 
 @dataclass
@@ -121,7 +132,13 @@ class PoseGraphOptimizer:
         initial = gtsam.Values()
         for i, pose in enumerate(poses):
             initial.insert(i, _pose3(pose))
-        graph.add(gtsam.PriorFactorPose3(0, _pose3(poses[0]), self._noise(1e-3, 1e-4, False)))
+        if o.absolute_prior_sigma_m > 0:
+            prior = self._noise(o.absolute_prior_sigma_deg, o.absolute_prior_sigma_m, False)
+            for i, pose in enumerate(poses):
+                graph.add(gtsam.PriorFactorPose3(i, _pose3(pose), prior))
+        else:
+            graph.add(gtsam.PriorFactorPose3(0, _pose3(poses[0]),
+                                             self._noise(1e-3, 1e-4, False)))
         for chain in chains:
             relative = invert_matrices(poses[chain[:-1]]) @ poses[chain[1:]]
             for i, j, step in zip(chain[:-1], chain[1:], relative):
@@ -144,7 +161,7 @@ class PoseGraphOptimizer:
             graph.add(gtsam.BetweenFactorPose3(loop.index0, loop.index1,
                                                _pose3(loop.node0_from_node1),
                                                self._noise(o.loop_sigma_deg, o.loop_sigma_m,
-                                                           True)))
+                                                           loop.robust)))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(o.max_iterations)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)

@@ -100,6 +100,9 @@ def stereo_relative_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.n
         raise GeometryError("stereo pose: the two translation directions are parallel, so "
                             "the scale is unobservable (degenerate motion)")
     (s1, s2), *_ = np.linalg.lstsq(system, target, rcond=None)
+    if s1 <= 0 or s2 <= 0:  # both directions point from the camera to the map view
+        raise GeometryError(f"stereo pose: inconsistent scales ({s1:.3g}, {s2:.3g}) from the "
+                            "two pairs; a wrong essential matrix or degenerate motion")
     initial = Rigid3(r_ml, s1 * d_ml)
     if options.refine:
         l_pts, lm_pts = left[inl_l], map_for_left[inl_l]
@@ -114,5 +117,18 @@ def stereo_relative_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.n
         solution = least_squares(residuals, np.r_[initial.rotvec(), initial.translation],
                                  loss="soft_l1", f_scale=scale, x_scale="jac", xtol=1e-14,
                                  ftol=1e-14, gtol=1e-14, max_nfev=200)
-        initial = Rigid3.from_rotvec(solution.x[:3], solution.x[3:])
+        refined = Rigid3.from_rotvec(solution.x[:3], solution.x[3:])
+        # the Sampson cost fixes the scale only through the right pair; a refinement that
+        # runs far from the linear solution found a wrong minimum
+        ratio = np.linalg.norm(refined.translation) / max(np.linalg.norm(initial.translation),
+                                                          1e-12)
+        cosine = float(refined.translation @ initial.translation) / max(
+            np.linalg.norm(refined.translation) * np.linalg.norm(initial.translation), 1e-24)
+        turned_deg = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+        if not 0.5 < ratio < 2.0 or turned_deg > 20.0 or \
+                (refined.inverse() * initial).rotation_angle_deg() > 5.0:
+            raise GeometryError(f"stereo pose: the refinement left the linear solution "
+                                f"(scale x{ratio:.2f}, direction {turned_deg:.0f} deg); the "
+                                "matches do not determine the motion")
+        initial = refined
     return StereoPoseResult(initial, int(inl_l.sum()), int(inl_r.sum()), (float(s1), float(s2)))
