@@ -5,7 +5,7 @@ Cases (each prints one or more table rows, and all rows are written to OUT/accur
               and the mapper, in view_graph and in radius pair mode, with pair counts;
 - indoor4:    indoor stereo4 (8 cameras), two laps, drifting odometry;
 - noise:      street stereo, initial poses = ground truth + noise (<= 3 m horizontal, 1 m
-              vertical, the paper's protocol), no drift;
+              vertical, the paper's protocol), no drift, mapped with config/noisy_prior.yaml;
 - extrinsics: indoor stereo4 whose /tf_static is perturbed by 5 cm / 2 deg per camera, mapped
               with --optimize-extrinsics; errors of the refined extrinsics vs the truth;
 - noisefree:  a render without sensor noise: mean reprojection error.
@@ -35,8 +35,10 @@ from cusfm_ros.pipeline.features import FeatureOptions
 from cusfm_ros.pipeline.keyframes import KeyframeOptions
 from cusfm_ros.pipeline.mapper import Mapper, MapperOptions
 from cusfm_ros.pipeline.mapping import MappingStageOptions
+from cusfm_ros.pipeline.options import load_config
 from cusfm_ros.sim.generator import SimulationOptions, Simulator
 
+CONFIG = Path(__file__).resolve().parents[1] / "config"
 DRIFT = {"odom_yaw_drift_deg_per_m": 0.3, "odom_scale_error": 0.02}
 REUSED = ("keyframes", "features", "vocabulary", "loops", "pose_graph")
 
@@ -151,8 +153,7 @@ def main() -> None:
     size = tuple(int(v) for v in args.size.split("x"))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    street_keyframes = KeyframeOptions(min_translation_m=0.5)
-    indoor_keyframes = KeyframeOptions(min_translation_m=0.5)
+    keyframe_options = KeyframeOptions(min_translation_m=0.5)
     lines = []
 
     def emit(text: str) -> None:
@@ -163,41 +164,39 @@ def main() -> None:
     emit("| run | keyframe images | pairs | input ATE m | pose graph ATE m | mapper ATE m | "
          "mapper / input | points | reproj px |\n|---|---|---|---|---|---|---|---|---|")
     timings = []
-    if "street" in args.cases:
-        sim = simulate(out, "street", size, scene="street", rig="stereo",
-                       frames=args.street_frames, loops=2, seed=3, **DRIFT)
-        options = base_options(street_keyframes, args.max_keypoints)
-        report = mapped(sim, out / "street_view_graph", options)
-        emit(trajectory_row("street stereo, view_graph", sim, out / "street_view_graph",
-                            report))
-        timings.append(("street stereo, view_graph", report))
-        options = replace(options, pairs=PairOptions(mode="radius", radius_m=6.0))
-        report = radius_run(sim, out / "street_view_graph", out / "street_radius", options)
-        emit(trajectory_row("street stereo, radius 6 m", sim, out / "street_radius", report))
-        timings.append(("street stereo, radius 6 m", report))
-    if "indoor4" in args.cases:
-        sim = simulate(out, "indoor4", size, scene="indoor", rig="stereo4",
-                       frames=args.indoor_frames, loops=2, seed=4, **DRIFT)
-        options = base_options(indoor_keyframes, args.max_keypoints)
-        report = mapped(sim, out / "indoor4_view_graph", options)
-        emit(trajectory_row("indoor stereo4, view_graph", sim, out / "indoor4_view_graph",
-                            report))
-        timings.append(("indoor stereo4, view_graph", report))
-        options = replace(options, pairs=PairOptions(mode="radius", radius_m=2.0))
-        report = radius_run(sim, out / "indoor4_view_graph", out / "indoor4_radius", options)
-        emit(trajectory_row("indoor stereo4, radius 2 m", sim, out / "indoor4_radius", report))
+    drift_cases = {  # name: (label, simulation, radius_m)
+        "street": ("street stereo", dict(scene="street", rig="stereo", frames=args.street_frames,
+                                         seed=3), 6.0),
+        "indoor4": ("indoor stereo4", dict(scene="indoor", rig="stereo4",
+                                           frames=args.indoor_frames, seed=4), 2.0)}
+    for name, (label, simulation, radius_m) in drift_cases.items():
+        if name not in args.cases:
+            continue
+        sim = simulate(out, name, size, loops=2, **simulation, **DRIFT)
+        options = base_options(keyframe_options, args.max_keypoints)
+        for mode, run in (("view_graph", out / f"{name}_view_graph"),
+                          (f"radius {radius_m:g} m", out / f"{name}_radius")):
+            if mode == "view_graph":
+                report = mapped(sim, run, options)
+            else:
+                options = replace(options, pairs=PairOptions(mode="radius", radius_m=radius_m))
+                report = radius_run(sim, out / f"{name}_view_graph", run, options)
+            emit(trajectory_row(f"{label}, {mode}", sim, run, report))
+            timings.append((f"{label}, {mode}", report))
     if "noise" in args.cases:
         sim = simulate(out, "street_noise", size, scene="street", rig="stereo",
                        frames=args.street_frames, loops=2, seed=5, pose_noise_m=(3.0, 1.0),
                        odom_yaw_drift_deg_per_m=0.0, odom_scale_error=0.0)
-        options = base_options(street_keyframes, args.max_keypoints)
+        preset = MapperOptions.from_dict(load_config(CONFIG / "noisy_prior.yaml"), "preset")
+        options = replace(preset, keyframes=keyframe_options,
+                          features=FeatureOptions(max_keypoints=args.max_keypoints))
         report = mapped(sim, out / "street_noise", options)
         emit(trajectory_row("street stereo, GT + noise (3 m, 1 m)", sim, out / "street_noise",
                             report))
     if "noisefree" in args.cases:
         sim = simulate(out, "noisefree", size, scene="street", rig="stereo", frames=100,
                        loops=1, seed=6, sensor_noise=False, **DRIFT)
-        report = mapped(sim, out / "noisefree", base_options(street_keyframes,
+        report = mapped(sim, out / "noisefree", base_options(keyframe_options,
                                                              args.max_keypoints))
         emit(trajectory_row("street stereo, noise-free render", sim, out / "noisefree",
                             report))
@@ -206,7 +205,7 @@ def main() -> None:
                        frames=args.indoor_frames // 2, loops=2, seed=7,
                        extrinsic_noise=(0.05, 2.0), odom_yaw_drift_deg_per_m=0.05,
                        odom_scale_error=0.01)
-        options = replace(base_options(indoor_keyframes, args.max_keypoints),
+        options = replace(base_options(keyframe_options, args.max_keypoints),
                           mapping=MappingStageOptions(optimize_extrinsics=True))
         run = out / "extrinsics"
         report = mapped(sim, run, options)
