@@ -201,3 +201,21 @@ def test_vectorized_triangulation_equals_one_track_at_a_time(rng):
                                axis=1)
         assert np.median(error) < 0.2  # points 3-25 m away, 0.5 px noise, f = 500 px
         assert np.mean(together.inliers[data["outlier"]]) < 0.02
+
+
+def test_fixed_nodes_stay_where_they_are_given(rng):
+    """Map update (paper Eq. 11): poses of an existing map are held; the rest moves to fit."""
+    from dataclasses import replace
+
+    camera = CAMERAS["pinhole"]
+    truth, data = scene(rng, camera)
+    start = perturbed(rng, truth["world_from_rig"], 0.1, np.radians(0.5))
+    start[:4] = truth["world_from_rig"][:4]  # the "existing map": exact, and held
+    problem = mapping_input(truth, data, camera, start)
+    problem.template = replace(problem.template, fixed_nodes=np.arange(4))
+    result = IterativeMapper().solve(problem)
+    np.testing.assert_allclose(result.world_from_node[:4], truth["world_from_rig"][:4],
+                               atol=1e-3)
+    error_m = np.linalg.norm(result.world_from_node[4:, :3, 3] -
+                             truth["world_from_rig"][4:, :3, 3], axis=1)
+    assert error_m.max() < 0.01

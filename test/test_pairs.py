@@ -53,6 +53,12 @@ def test_radius_mode_per_camera_with_direction_filter():
     turned = select_pairs(KeyframeSet(kfs.rig, frames), [],
                           PairOptions(mode="radius", radius_m=2.5))
     assert turned.counts() == {"radius": 8}  # only the |i - j| = 2 pairs look the same way
+    # refined poses (the pose graph's) replace the initial ones: squeezed to 0.5 m spacing,
+    # every keyframe is within 2.4 m of the next four
+    squeezed = {k.image_name: Rigid3(k.world_from_cam.rotation, k.world_from_cam.translation
+                                     * 0.5) for k in kfs.keyframes}
+    refined = select_pairs(kfs, [], PairOptions(mode="radius", radius_m=2.4), squeezed)
+    assert refined.counts() == {"radius": 9 + 8 + 7 + 6}
 
 
 def test_bad_pair_options():

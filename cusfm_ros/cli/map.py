@@ -1,5 +1,5 @@
 """``cusfm map BAG --out RUN_DIR``: run the mapper's stages (keyframes, features, vocabulary,
-loops, pairs, pose_graph, matching, mapping, export)."""
+loops, pose_graph, pairs, matching, mapping, export)."""
 
 from __future__ import annotations
 

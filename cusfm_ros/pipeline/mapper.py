@@ -2,7 +2,7 @@
 
 Stages run in order and talk through files in RUN_DIR, so any subset can be (re)run with
 ``steps``. Each stage's seconds and counts go to ``RUN_DIR/report.json`` (merged across runs).
-Stages: keyframes, features, vocabulary, loops, pairs, pose_graph, matching, mapping, export.
+Stages: keyframes, features, vocabulary, loops, pose_graph, pairs, matching, mapping, export.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from cusfm_ros.pipeline.retrieval import (FeatureStage, LoopStage, VocabularySta
                                           VocabularyStageOptions)
 
 logger = logging.getLogger(__name__)
-STAGES = ("keyframes", "features", "vocabulary", "loops", "pairs", "pose_graph", "matching",
+STAGES = ("keyframes", "features", "vocabulary", "loops", "pose_graph", "pairs", "matching",
           "mapping", "export")
 SECTIONS = {"keyframes": KeyframeOptions, "features": FeatureOptions,
             "vocabulary": VocabularyStageOptions, "loops": LoopOptions, "pairs": PairOptions,

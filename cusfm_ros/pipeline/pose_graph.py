@@ -1,6 +1,7 @@
-"""Stages ``pairs`` and ``pose_graph``.
+"""Stages ``pose_graph`` and ``pairs``.
 
-- pairs:      view-graph (sequential + loop + extrinsic) or radius pair selection ->
+- pairs:      view-graph (sequential + loop + extrinsic) or radius pair selection (on the pose
+              graph's poses when it ran: the paper's view graph from pose-graph priors) ->
               RUN_DIR/pairs/pairs.txt (one pair of image names per line) and counts.
 - pose_graph: one node per rig sample at its initial (odometry) pose, sequential odometry
               factors, one loop factor per verified loop — metric from the stereo relative pose
@@ -28,7 +29,7 @@ from cusfm_ros.core.rig import Rig
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CusfmError, GeometryError
 from cusfm_ros.io.atomic import atomic_write
-from cusfm_ros.io.tum import write_tum
+from cusfm_ros.io.tum import read_tum, write_tum
 from cusfm_ros.pipeline.features import FeatureOptions, make_matcher
 from cusfm_ros.pipeline.options import options_as_dict
 from cusfm_ros.pipeline.retrieval import StageResult, load_keyframes, open_store
@@ -41,6 +42,19 @@ def read_loops(run_dir: Path) -> list[dict]:
     if not path.is_file():
         raise CusfmError(f"{path} is missing; run the loops stage first")
     return json.loads(path.read_text())["loops"]
+
+
+def refined_world_from_cam(keyframes: KeyframeSet, world_from_rig: Trajectory
+                           ) -> dict[str, Rigid3]:
+    """Every keyframe's world_from_cam under per-sample refined world_from_rig poses."""
+    sample_ids, stamps, _ = keyframes.sample_poses()
+    if not np.array_equal(world_from_rig.stamps_ns, stamps):
+        raise CusfmError("pose_graph/poses.tum does not match the keyframes; rerun the "
+                         "pose_graph stage with --overwrite")
+    by_sample = {s: Rigid3.from_matrix(m) for s, m in zip(sample_ids,
+                                                          world_from_rig.world_from_body)}
+    return {k.image_name: by_sample[k.sample_id] * keyframes.rig[k.camera_name].rig_from_cam
+            for k in keyframes.keyframes}
 
 
 class PairStage:
@@ -57,8 +71,13 @@ class PairStage:
             else:
                 logger.warning("pairs: no loops/loops.json (loops stage skipped?): the view "
                                "graph gets sequential and extrinsic pairs only")
+        poses = None
+        refined = run_dir / "pose_graph" / "poses.tum"
+        if self.options.mode == "radius" and refined.is_file():
+            poses = refined_world_from_cam(keyframes, read_tum(refined))
+            logger.info("pairs: radius selection on the pose graph's poses")
         pairs = select_pairs(keyframes, [(x["query_image"], x["match_image"]) for x in loops],
-                             self.options)
+                             self.options, poses)
         out = run_dir / "pairs" / "pairs.txt"
         with atomic_write(out) as handle:
             handle.writelines(f"{a} {b}\n" for a, b, _ in pairs.pairs)

@@ -52,7 +52,10 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def select_pairs(keyframes: KeyframeSet, loops: list[tuple[str, str]],
-                 options: PairOptions = PairOptions()) -> PairSet:
+                 options: PairOptions = PairOptions(),
+                 world_from_cam: dict | None = None) -> PairSet:
+    """Pairs by ``options.mode``; ``world_from_cam`` (image name -> Rigid3) replaces the
+    keyframes' own (initial) poses for radius selection, e.g. the pose graph's."""
     order = {k.image_name: (k.stamp_ns, k.camera_name) for k in keyframes.keyframes}
     chosen: dict[tuple[str, str], str] = {}
 
@@ -82,9 +85,11 @@ def select_pairs(keyframes: KeyframeSet, loops: list[tuple[str, str]],
                     if angle < options.extrinsic_max_angle_deg:
                         add(first.image_name, second.image_name, "extrinsic")
     else:
+        pose = (lambda k: k.world_from_cam) if world_from_cam is None else (
+            lambda k: world_from_cam[k.image_name])
         for frames in by_camera.values():
-            centres = np.array([k.world_from_cam.translation for k in frames])
-            directions = np.array([k.world_from_cam.rotation[:, 2] for k in frames])
+            centres = np.array([pose(k).translation for k in frames])
+            directions = np.array([pose(k).rotation[:, 2] for k in frames])
             for i, j in sorted(cKDTree(centres).query_pairs(options.radius_m)):
                 if _angle_deg(directions[i], directions[j]) < options.radius_max_angle_deg:
                     add(frames[i].image_name, frames[j].image_name, "radius")
