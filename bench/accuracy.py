@@ -207,7 +207,7 @@ def main() -> None:
                        odom_scale_error=0.01)
         options = replace(base_options(keyframe_options, args.max_keypoints),
                           mapping=MappingStageOptions(optimize_extrinsics=True))
-        run = out / "extrinsics"
+        run = out / "extrinsics_run"  # beside the simulation, not inside it
         report = mapped(sim, run, options)
         emit(trajectory_row("indoor stereo4, extrinsics perturbed 5 cm / 2 deg, refined", sim,
                             run, report))
