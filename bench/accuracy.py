@@ -166,9 +166,9 @@ def main() -> None:
     timings = []
     drift_cases = {  # name: (label, simulation, radius_m)
         "street": ("street stereo", dict(scene="street", rig="stereo", frames=args.street_frames,
-                                         seed=3), 6.0),
+                                         seed=3), 3.0),
         "indoor4": ("indoor stereo4", dict(scene="indoor", rig="stereo4",
-                                           frames=args.indoor_frames, seed=4), 2.0)}
+                                           frames=args.indoor_frames, seed=4), 1.5)}
     for name, (label, simulation, radius_m) in drift_cases.items():
         if name not in args.cases:
             continue

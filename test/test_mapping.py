@@ -11,16 +11,34 @@ def test_tracks_join_chains_and_reject_conflicts():
     # image 0 kp 0 - image 1 kp 2 - image 2 kp 1 : one track of 3
     # image 0 kp 1 - image 1 kp 0 and image 1 kp 0 - image 2 kp 3 : another track of 3
     # image 0 kp 3 - image 1 kp 4, image 1 kp 4 - image 2 kp 5, image 2 kp 5 - image 0 kp 2:
-    #   image 0 twice (kp 3 and kp 2) -> rejected
+    #   image 0 twice (kp 3 and kp 2): the least confident match of that cycle is left out
     matches = [(0, 1, [[0, 2], [1, 0], [3, 4]]), (1, 2, [[2, 1], [0, 3], [4, 5]]),
                (2, 0, [[5, 2]])]
-    tracks = build_tracks([4, 5, 6], matches)
-    assert len(tracks) == 2 and tracks.rejected == 1
+    confidences = [[0.9, 0.9, 0.9], [0.9, 0.9, 0.8], [0.95]]
+    tracks = build_tracks([4, 5, 6], matches, confidences=confidences)
+    assert len(tracks) == 4 and tracks.rejected == 1
     found = sorted(tuple(zip(*tracks.track(t))) for t in range(len(tracks)))
-    assert found == [((0, 0), (1, 2), (2, 1)), ((0, 1), (1, 0), (2, 3))]
-    np.testing.assert_array_equal(tracks.lengths, [3, 3])
+    # most confident first: 2:5 - 0:2 (0.95), 0:3 - 1:4 (0.9); 1:4 - 2:5 (0.8) would put
+    # keypoints 2 and 3 of image 0 in one track, so it is the one left out
+    assert found == [((0, 0), (1, 2), (2, 1)), ((0, 1), (1, 0), (2, 3)), ((0, 2), (2, 5)),
+                     ((0, 3), (1, 4))]
     assert len(build_tracks([4, 5, 6], matches, min_length=4)) == 0
     assert len(build_tracks([1, 1], [])) == 0
+
+
+def test_one_wrong_match_does_not_cost_the_tracks_it_chains_together():
+    # 50 images, keypoint k of every image is one point: 49 sequential matches per point;
+    # one wrong match joins point 0 of image 10 to point 1 of image 11
+    matches = [(i, i + 1, [[k, k] for k in range(3)]) for i in range(49)]
+    matches[10] = (10, 11, [[0, 0], [1, 1], [2, 2], [0, 1]])
+    confidences = [np.full(len(m), 0.9) for _, _, m in matches]
+    confidences[10] = np.array([0.9, 0.9, 0.9, 0.2])
+    tracks = build_tracks([3] * 50, matches, confidences=confidences)
+    assert len(tracks) == 3 and tracks.rejected == 1
+    np.testing.assert_array_equal(tracks.lengths, [50, 50, 50])
+    for t in range(3):
+        images, keypoints = tracks.track(t)
+        assert len(set(keypoints.tolist())) == 1 and sorted(images.tolist()) == list(range(50))
 
 
 def views(rng, count=5):

@@ -41,7 +41,7 @@ def test_extrinsic_pairs_need_overlapping_views():
     assert wide.counts()["extrinsic"] == 3 * 4  # each camera with its two side neighbours
 
 
-def test_radius_mode_per_camera_with_direction_filter():
+def test_radius_mode_with_direction_filter():
     kfs = keyframe_set("mono", 10, spacing_m=1.0)
     pairs = select_pairs(kfs, [], PairOptions(mode="radius", radius_m=2.5))
     assert pairs.counts() == {"radius": 9 + 8}  # |i - j| <= 2 along a line
@@ -59,6 +59,14 @@ def test_radius_mode_per_camera_with_direction_filter():
                                      * 0.5) for k in kfs.keyframes}
     refined = select_pairs(kfs, [], PairOptions(mode="radius", radius_m=2.4), squeezed)
     assert refined.counts() == {"radius": 9 + 8 + 7 + 6}
+
+
+def test_radius_mode_pairs_the_cameras_of_a_stereo_rig():
+    kfs = keyframe_set("stereo", 5, spacing_m=1.0)  # 0.15 m baseline, samples 1 m apart
+    pairs = select_pairs(kfs, [], PairOptions(mode="radius", radius_m=0.5))
+    assert pairs.counts() == {"radius": 5}  # left-right of each sample, else each camera
+    assert {(a.split("/")[1], b.split("/")[1]) for a, b, _ in pairs.pairs} == {
+        (f"{s}.png", f"{s}.png") for s in range(5)}  # would map alone, at no known scale
 
 
 def test_bad_pair_options():

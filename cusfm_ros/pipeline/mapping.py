@@ -194,11 +194,11 @@ class MappingStage:
             if missing:
                 raise CusfmError(f"{len(missing)} pairs have no verified matches yet (e.g. "
                                  f"{missing[0][0]} - {missing[0][1]}); run the matching stage")
-            pair_matches = [(index[a], index[b], verified.matches(a, b).indices)
-                            for a, b in pairs]
-        used = [(i, j, m) for i, j, m in pair_matches if len(m)]
+            pair_matches = [(index[a], index[b], verified.matches(a, b)) for a, b in pairs]
+        used = [(i, j, m.indices) for i, j, m in pair_matches if len(m)]
         components = self._components(len(images), used)
-        tracks = build_tracks([len(k) for k in keypoints], used)
+        tracks = build_tracks([len(k) for k in keypoints], used,
+                              confidences=[m.confidences for _, _, m in pair_matches if len(m)])
         # normalized coordinates; rays too far off the optical axis (fisheye edges) are dropped
         obs_uv = np.zeros((len(tracks.image), 2))
         for i in np.unique(tracks.image):
@@ -227,7 +227,7 @@ class MappingStage:
                                                                obs_uv[keep][:, 1])
         counts = {"pairs": len(pairs), "pairs_with_matches": len(used),
                   "verified_matches": int(sum(len(m) for _, _, m in used)),
-                  "tracks": int(len(offsets) - 1), "tracks_rejected_inconsistent":
+                  "tracks": int(len(offsets) - 1), "conflicting_matches_dropped":
                   tracks.rejected, "track_observations": int(len(obs_image)),
                   "view_graph_components": len(components)}
         extra = {"obs_keypoint": obs_keypoint, "obs_uv": obs_uv[keep],

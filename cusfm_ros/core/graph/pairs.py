@@ -3,8 +3,8 @@
 - ``view_graph``: sequential neighbours of each camera (k before/after), loop-closure pairs,
   and extrinsic pairs (cameras of one rig sample whose optical axes are close enough to
   overlap, e.g. stereo pairs);
-- ``radius``: per camera, keyframes whose centres are within R metres (scipy k-d tree) and
-  whose viewing directions differ by less than an angle.
+- ``radius``: keyframes (of any camera) whose centres are within R metres (scipy k-d tree)
+  and whose viewing directions differ by less than an angle.
 """
 
 from __future__ import annotations
@@ -85,14 +85,16 @@ def select_pairs(keyframes: KeyframeSet, loops: list[tuple[str, str]],
                     if angle < options.extrinsic_max_angle_deg:
                         add(first.image_name, second.image_name, "extrinsic")
     else:
+        # over every camera: a stereo pair or overlapping cameras of the rig must be paired
+        # too, or each camera's images form a monocular map of their own
         pose = (lambda k: k.world_from_cam) if world_from_cam is None else (
             lambda k: world_from_cam[k.image_name])
-        for frames in by_camera.values():
-            centres = np.array([pose(k).translation for k in frames])
-            directions = np.array([pose(k).rotation[:, 2] for k in frames])
-            for i, j in sorted(cKDTree(centres).query_pairs(options.radius_m)):
-                if _angle_deg(directions[i], directions[j]) < options.radius_max_angle_deg:
-                    add(frames[i].image_name, frames[j].image_name, "radius")
+        frames = sorted(keyframes.keyframes, key=lambda k: (k.stamp_ns, k.camera_name))
+        centres = np.array([pose(k).translation for k in frames])
+        directions = np.array([pose(k).rotation[:, 2] for k in frames])
+        for i, j in sorted(cKDTree(centres).query_pairs(options.radius_m)):
+            if _angle_deg(directions[i], directions[j]) < options.radius_max_angle_deg:
+                add(frames[i].image_name, frames[j].image_name, "radius")
     pairs = sorted(((a, b, kind) for (a, b), kind in chosen.items()),
                    key=lambda p: (order[p[0]], order[p[1]]))
     return PairSet(pairs)

@@ -1,9 +1,12 @@
 """Feature tracks: connected components of pairwise matches (union-find over observations).
 
 Observations are (image index, keypoint index). Every match joins two observations; a track is
-a connected component. A track holding two different keypoints of one image is inconsistent
-(some match in it is wrong) and is rejected. Connected components come from scipy's sparse
-graph routines rather than a Python union-find loop.
+a connected component. A component holding two different keypoints of one image is
+inconsistent (some match in it is wrong): rather than losing it whole — with dense pairs one
+wrong match can chain thousands of observations together — it is rebuilt greedily, most
+confident match first, by a union-find that refuses any merge that would put two keypoints of
+one image into one track (COLMAP's rule). Consistent components come straight from scipy's
+sparse graph routines; only the inconsistent ones go through the Python union-find.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ class Tracks:
     offsets: np.ndarray
     """(T + 1,) track t owns observations offsets[t]:offsets[t + 1]."""
     rejected: int = 0
-    """Tracks dropped for holding two keypoints of one image."""
+    """Matches left out because they would put two keypoints of one image into a track."""
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
@@ -38,37 +41,81 @@ class Tracks:
         return np.diff(self.offsets)
 
 
+def _split_inconsistent(nodes: np.ndarray, image_of: np.ndarray, edges: np.ndarray,
+                        order: np.ndarray) -> tuple[np.ndarray, int]:
+    """Greedy union-find over ``edges`` (pairs of node ids) in ``order``; a merge that would
+    join two keypoints of one image is skipped. Returns a root per node and the skips."""
+    parent = {int(n): int(n) for n in nodes}
+    images = {int(n): {int(i): int(n)} for n, i in zip(nodes, image_of)}
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    skipped = 0
+    for a, b in edges[order].tolist():
+        ra, rb = find(a), find(b)
+        if ra == rb:
+            continue
+        small, large = (ra, rb) if len(images[ra]) < len(images[rb]) else (rb, ra)
+        if not images[small].keys().isdisjoint(images[large]):
+            skipped += 1
+            continue
+        parent[small] = large
+        images[large].update(images.pop(small))
+    return np.array([find(int(n)) for n in nodes], np.int64), skipped
+
+
 def build_tracks(num_keypoints: list[int], pair_matches: list[tuple[int, int, np.ndarray]],
-                 min_length: int = 2) -> Tracks:
-    """Tracks from matches ``(image0, image1, (K, 2) keypoint indices)``."""
+                 min_length: int = 2, confidences: list[np.ndarray] | None = None) -> Tracks:
+    """Tracks from matches ``(image0, image1, (K, 2) keypoint indices)``; ``confidences``
+    (one (K,) array per pair) order the greedy rebuild of inconsistent components."""
     starts = np.r_[0, np.cumsum(num_keypoints)].astype(np.int64)
     total = int(starts[-1])
-    rows, cols = [], []
-    for image0, image1, indices in pair_matches:
+    rows, cols, scores = [], [], []
+    for index, (image0, image1, indices) in enumerate(pair_matches):
         indices = np.asarray(indices, dtype=np.int64).reshape(-1, 2)
         if len(indices) == 0:
             continue
         rows.append(starts[image0] + indices[:, 0])
         cols.append(starts[image1] + indices[:, 1])
+        scores.append(np.ones(len(indices)) if confidences is None
+                      else np.asarray(confidences[index], np.float64))
     if not rows:
         return Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(1, np.int64))
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    rows, cols, scores = np.concatenate(rows), np.concatenate(cols), np.concatenate(scores)
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(total, total))
     _, label = connected_components(graph, directed=False)
+    image_of_node = np.searchsorted(starts, np.arange(total), side="right") - 1
     observed = np.zeros(total, bool)
     observed[rows] = observed[cols] = True
     nodes = np.nonzero(observed)[0]
-    image_of = np.searchsorted(starts, nodes, side="right") - 1
-    order = np.lexsort((image_of, label[nodes]))
-    nodes, image_of, labels = nodes[order], image_of[order], label[nodes][order]
+    # inconsistent components: one image twice
+    order = np.lexsort((image_of_node[nodes], label[nodes]))
+    sorted_nodes = nodes[order]
+    repeated = (label[sorted_nodes][1:] == label[sorted_nodes][:-1]) & (
+        image_of_node[sorted_nodes][1:] == image_of_node[sorted_nodes][:-1])
+    bad_labels = np.unique(label[sorted_nodes][1:][repeated])
+    skipped = 0
+    if len(bad_labels):
+        in_bad = np.isin(label, bad_labels)
+        bad_nodes = nodes[in_bad[nodes]]
+        edge_sel = in_bad[rows]
+        edges = np.stack([rows[edge_sel], cols[edge_sel]], axis=1)
+        by_confidence = np.argsort(-scores[edge_sel], kind="stable")
+        roots, skipped = _split_inconsistent(bad_nodes, image_of_node[bad_nodes], edges,
+                                             by_confidence)
+        label = label.copy()
+        label[bad_nodes] = label.max() + 1 + roots  # fresh labels beyond the old ones
+    order = np.lexsort((image_of_node[nodes], label[nodes]))
+    nodes = nodes[order]
+    labels, image_of = label[nodes], image_of_node[nodes]
     boundaries = np.r_[0, np.nonzero(np.diff(labels))[0] + 1, len(labels)]
     lengths = np.diff(boundaries)
-    # inconsistent: the same image appears twice in one track (sorted by image within track)
-    repeated = np.zeros(len(labels), bool)
-    repeated[1:] = (labels[1:] == labels[:-1]) & (image_of[1:] == image_of[:-1])
-    bad_track = np.add.reduceat(repeated.astype(np.int64), boundaries[:-1]) > 0
-    keep = ~bad_track & (lengths >= min_length)
+    keep = lengths >= min_length
     keep_obs = np.repeat(keep, lengths)
     kept_lengths = lengths[keep]
     return Tracks(image_of[keep_obs], (nodes - starts[image_of])[keep_obs],
-                  np.r_[0, np.cumsum(kept_lengths)].astype(np.int64), int(bad_track.sum()))
+                  np.r_[0, np.cumsum(kept_lengths)].astype(np.int64), skipped)
