@@ -82,17 +82,18 @@ class MatchingStage:
             logger.info("matching: %d pairs, %d to match", len(pairs), len(todo))
             tick = time.perf_counter()
             for index, (a, b) in enumerate(todo):
+                features_a, features_b = store.features(a), store.features(b)  # read once
                 if store.has_matches(a, b) or store.has_matches(b, a):
                     raw = store.matches(a, b)
                 else:
                     matcher = matcher or make_matcher(self.features)
-                    raw = matcher.match(store.features(a), store.features(b))
+                    raw = matcher.match(features_a, features_b)
                     matched += 1
                 kept = raw
                 if o.verify and len(raw):
                     mask = essential_inliers(
-                        store.features(a).keypoints_px[raw.indices[:, 0]],
-                        store.features(b).keypoints_px[raw.indices[:, 1]],
+                        features_a.keypoints_px[raw.indices[:, 0]],
+                        features_b.keypoints_px[raw.indices[:, 1]],
                         camera_of[a], camera_of[b], o.ransac_threshold_px, o.seed)
                     kept = Matches(raw.indices[mask], raw.confidences[mask])
                 if len(kept) < o.min_inliers:
