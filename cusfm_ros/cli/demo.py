@@ -10,18 +10,16 @@ from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import replace
 from pathlib import Path
 
 from cusfm_ros.core.evaluation import AteOptions, absolute_trajectory_error
 from cusfm_ros.io.bags.summary import format_summary, summarize
 from cusfm_ros.io.tum import read_tum
-from cusfm_ros.pipeline.mapper import Mapper, MapperOptions
-from cusfm_ros.pipeline.options import load_config
+from cusfm_ros.pipeline.mapper import Mapper
+from cusfm_ros.pipeline.options import preset_path, resolve_options
 from cusfm_ros.sim.generator import SimulationOptions, Simulator
 
 logger = logging.getLogger(__name__)
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 DRIFT = {"odom_yaw_drift_deg_per_m": 0.3, "odom_scale_error": 0.02}
 
 DATASETS = {
@@ -41,11 +39,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
-def _options(preset: str) -> MapperOptions:
-    path = CONFIG_DIR / preset
-    options = MapperOptions.from_dict(load_config(path) if path.is_file() else {}, str(path))
+def _options(preset: str):
     # 1024 keypoints keep the demo to a few minutes on two cores
-    return replace(options, features=replace(options.features, max_keypoints=1024))
+    return resolve_options(preset_path(preset),
+                           {"features.extractor.aliked.max_keypoints": 1024})
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,47 +6,9 @@ import argparse
 import json
 import time
 
-import cv2
-
-from cusfm_ros.errors import CusfmError
-from cusfm_ros.pipeline.features import EXTRACTORS, MATCHERS, FeatureOptions, make_extractor
-from cusfm_ros.pipeline.features import make_matcher
-
-
-def read_image(path: str):
-    image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise CusfmError(f"{path}: cannot read the image (missing, or not an image format "
-                         "OpenCV reads)")
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4
-                             else cv2.COLOR_BGR2RGB)
-    return image
-
-
-def add_feature_arguments(parser: argparse.ArgumentParser) -> None:
-    """Feature options; unset ones keep the config file's value, then the defaults."""
-    parser.add_argument("--features", choices=EXTRACTORS, default=None,
-                        help="default aliked")
-    parser.add_argument("--matcher", choices=MATCHERS, default=None,
-                        help="default: lightglue for aliked, knn for sift")
-    parser.add_argument("--max-keypoints", type=int, default=None, help="default 2048")
-    parser.add_argument("--resize-max-px", type=int, default=None)
-    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None)
-    parser.add_argument("--backend", choices=("auto", "onnx", "torch"), default=None)
-    parser.add_argument("--model-dir", default=None)
-
-
-def feature_options(args: argparse.Namespace, base: FeatureOptions | None = None
-                    ) -> FeatureOptions:
-    values = dict((base or FeatureOptions()).__dict__)
-    overrides = {"features": args.features, "matcher": args.matcher,
-                 "max_keypoints": args.max_keypoints, "resize_max_px": args.resize_max_px,
-                 "device": args.device, "backend": args.backend, "model_dir": args.model_dir}
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    if args.matcher is None and args.features is not None:
-        values["matcher"] = "lightglue" if values["features"] == "aliked" else "knn"
-    return FeatureOptions(**values)
+from cusfm_ros.cli.options import add_config_arguments, add_feature_arguments, resolved_options
+from cusfm_ros.pipeline.components import make_extractor, make_matcher
+from cusfm_ros.pipeline.stages.features import read_image
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -54,6 +16,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("image_a")
     parser.add_argument("image_b")
     add_feature_arguments(parser)
+    add_config_arguments(parser)
     parser.add_argument("--json", action="store_true",
                         help="print {keypoints0, keypoints1, matches} as JSON")
     parser.set_defaults(run=run)
@@ -61,9 +24,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    options = feature_options(args)
+    options = resolved_options(args)
+    features, device = options.features, options.device
     image_a, image_b = read_image(args.image_a), read_image(args.image_b)
-    extractor, matcher = make_extractor(options), make_matcher(options)
+    extractor, matcher = make_extractor(features, device), make_matcher(features, device)
     started = time.perf_counter()
     features_a, features_b = extractor.extract(image_a), extractor.extract(image_b)
     extracted = time.perf_counter()
@@ -74,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
                           "keypoints1": features_b.keypoints_px.tolist(),
                           "matches": matches.indices.tolist()}))
         return 0
-    print(f"{options.features} + {options.matcher}: {len(features_a)} and {len(features_b)} "
-          f"keypoints, {len(matches)} matches (extraction {extracted - started:.2f} s, "
-          f"matching {done - extracted:.2f} s)")
+    print(f"{features.extractor.name} + {features.matcher.name}: {len(features_a)} and "
+          f"{len(features_b)} keypoints, {len(matches)} matches (extraction "
+          f"{extracted - started:.2f} s, matching {done - extracted:.2f} s)")
     return 0

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from cusfm_ros.core.cameras import CameraBase
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.errors import CalibrationError
@@ -68,6 +70,20 @@ class Rig:
 
     def world_from_cam(self, world_from_rig: Rigid3, name: str) -> Rigid3:
         return world_from_rig * self[name].rig_from_cam
+
+    def stereo_partner(self, name: str, max_angle_deg: float = 5.0) -> str | None:
+        """The camera forming a stereo pair with ``name``: parallel optical axes (within
+        ``max_angle_deg``) and the shortest baseline above 2 cm; None if there is none."""
+        own = self[name].rig_from_cam
+        best, best_distance = None, float("inf")
+        for camera in self.cameras:
+            if camera.name == name:
+                continue
+            relative = own.inverse() * camera.rig_from_cam
+            distance = float(np.linalg.norm(relative.translation))
+            if relative.rotation_angle_deg() < max_angle_deg and 0.02 < distance < best_distance:
+                best, best_distance = camera.name, distance
+        return best
 
     def with_extrinsics(self, rig_from_cams: dict[str, Rigid3]) -> Rig:
         """A copy with some cameras' extrinsics replaced (unknown names raise)."""

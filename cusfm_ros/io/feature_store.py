@@ -9,7 +9,8 @@ Layout (h5py):
 Image names may contain "/" (camera sub-folders); they are escaped so every entry is one group.
 An entry counts only once its ``complete`` flag is set (written last), so a run killed mid-write
 is resumed by redoing just the incomplete entry. Opening a store made with another
-configuration raises, unless ``overwrite`` starts it afresh.
+configuration raises, unless ``overwrite`` starts it afresh; a cache (``reset_on_mismatch``)
+starts afresh by itself, and ``recover`` replaces a file HDF5 cannot open (a kill mid-write).
 """
 
 from __future__ import annotations
@@ -41,31 +42,57 @@ def pair_key(image0: str, image1: str) -> str:
 class FeatureStore:
     """``with FeatureStore(path, config) as store: store.put_features(name, f) ...``"""
 
-    def __init__(self, path: str | os.PathLike, config: dict, overwrite: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike, config: dict, overwrite: bool = False,
+                 recover: bool = False, reset_on_mismatch: bool = False,
+                 read_only: bool = False) -> None:
         self.path = Path(path)
-        self.config = json.dumps(config, sort_keys=True)
+        self.config = json.dumps(config, sort_keys=True, default=str)
         self.overwrite = overwrite
+        self.recover = recover
+        self.reset_on_mismatch = reset_on_mismatch
+        self.read_only = read_only
         self._file = None
 
-    def __enter__(self) -> FeatureStore:
+    def _open(self):
         import h5py
 
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.overwrite and self.path.exists():
-            self.path.unlink()
+        if self.read_only:
+            if not self.path.is_file():
+                raise FormatError(self.path, None, "no such store", "run the stage that "
+                                  "writes it")
+            return h5py.File(self.path, "r")
+        return h5py.File(self.path, "a")
+
+    def __enter__(self) -> FeatureStore:
+        if not self.read_only:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self.overwrite and self.path.exists():
+                self.path.unlink()
         try:
-            self._file = h5py.File(self.path, "a")
+            self._file = self._open()
         except OSError as exc:
-            raise FormatError(self.path, None, f"cannot open the feature store ({exc})",
-                              "delete it to start over") from None
+            if not (self.recover or self.reset_on_mismatch) or self.read_only:
+                raise FormatError(self.path, None, f"cannot open the store ({exc})",
+                                  "rerun the stage that writes it with --overwrite") from None
+            self.path.unlink()
+            self._file = self._open()
         attrs = self._file.attrs
+        if self.read_only:  # the runner's fingerprints tie a reader to its producer
+            if attrs.get("format") != FORMAT:
+                self._file.close()
+                raise FormatError(self.path, None, "not a cusfm feature store",
+                                  "rerun the stage that writes it with --overwrite")
+            return self
         if "format" not in attrs:
             attrs["format"], attrs["config"] = FORMAT, self.config
-        elif attrs["format"] != FORMAT or attrs["config"] != self.config:
+        elif attrs.get("format") != FORMAT or attrs.get("config") != self.config:
             stored = attrs.get("config")
             self._file.close()
-            raise CusfmError(f"{self.path} holds features of another configuration ({stored});"
-                             " use --overwrite or another run directory")
+            if self.reset_on_mismatch:
+                self.path.unlink()
+                return self.__enter__()
+            raise CusfmError(f"{self.path} holds data of another configuration ({stored});"
+                             " rerun the stage that writes it (--overwrite)")
         self._file.require_group("features")
         self._file.require_group("matches")
         return self
@@ -77,7 +104,8 @@ class FeatureStore:
 
     # ---------------------------------------------------------------------------- features
     def has_features(self, name: str) -> bool:
-        group = self._file["features"].get(_key(name))
+        root = self._file.get("features")
+        group = root.get(_key(name)) if root is not None else None
         return group is not None and bool(group.attrs.get("complete", False))
 
     def put_features(self, name: str, features: Features) -> None:
@@ -105,7 +133,8 @@ class FeatureStore:
 
     # ----------------------------------------------------------------------------- matches
     def has_matches(self, image0: str, image1: str) -> bool:
-        group = self._file["matches"].get(pair_key(image0, image1))
+        root = self._file.get("matches")
+        group = root.get(pair_key(image0, image1)) if root is not None else None
         return group is not None and bool(group.attrs.get("complete", False))
 
     def put_matches(self, image0: str, image1: str, matches: Matches) -> None:

@@ -6,15 +6,16 @@ logger; when the map is done, a ``cusfm_ros_interfaces/MapInfo`` is published la
 ``~/map_info`` and the node exits (status 0, or 1 with the error logged).
 
 Parameters: bag (string, required), out (string, required), config (string, YAML preset),
-steps (string[], default all), frame_type (rig|camera), optimize_extrinsics (bool),
-rolling_shutter_line_delay_s (double), colmap_binary (bool), rgb (bool).
+steps (string[], default all), and every switch of ``cusfm map`` under its option name
+(``pipeline.options.SWITCHES``: frame_type, optimize_extrinsics,
+rolling_shutter_line_delay_s, colmap_binary, rgb, seed, device, ...); a switch left unset
+keeps the preset's value.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 
 from cusfm_ros.errors import ConfigError, CusfmError
@@ -41,28 +42,13 @@ class _RosLogHandler(logging.Handler):
 
 
 def mapper_options_from_parameters(values: dict):
-    """MapperOptions from the node's parameter values (preset first, switches on top)."""
-    from cusfm_ros.pipeline.mapper import MapperOptions
-    from cusfm_ros.pipeline.options import load_config
+    """MapperOptions from the node's parameter values through the CLI's resolver: the preset
+    (``config``) first, every switch parameter that is set (not None) on top."""
+    from cusfm_ros.pipeline.options import SWITCHES, resolve_options, switch_overrides
 
-    config = load_config(values["config"]) if values.get("config") else {}
-    options = MapperOptions.from_dict(config, values.get("config") or "parameters")
-    mapping = options.mapping
-    changes = {}
-    if values.get("frame_type"):
-        changes["frame_type"] = values["frame_type"]
-    if values.get("optimize_extrinsics"):
-        changes["optimize_extrinsics"] = True
-    if values.get("rolling_shutter_line_delay_s", 0.0) > 0:
-        changes["rolling_shutter_line_delay_s"] = float(values["rolling_shutter_line_delay_s"])
-    try:
-        mapping = replace(mapping, **changes)
-    except TypeError as exc:
-        raise ConfigError(str(exc)) from None
-    export = replace(options.export, colmap_binary=bool(values.get("colmap_binary")),
-                     rgb=bool(values.get("rgb")))
-    pose_graph = replace(options.pose_graph, frame_type=mapping.frame_type)
-    return replace(options, mapping=mapping, export=export, pose_graph=pose_graph)
+    switches = {name: values.get(name) for name in SWITCHES}
+    return resolve_options(values.get("config") or None, switch_overrides(switches),
+                           overrides_source="parameters")
 
 
 def map_info_message(message_type, stamp, run_dir: Path, report: dict, rig) -> object:
@@ -81,8 +67,10 @@ def main(args: Sequence[str] | None = None) -> int:
     rclpy = import_ros("rclpy")
     qos = import_ros("rclpy.qos")
     interfaces = import_ros("cusfm_ros_interfaces.msg")
-    from cusfm_ros.pipeline.mapper import STAGES, Mapper
-    from cusfm_ros.pipeline.retrieval import load_keyframes
+    from cusfm_ros.io.keyframes_file import read_keyframes
+    from cusfm_ros.io.run_dir import RunDir
+    from cusfm_ros.pipeline.mapper import STAGE_NAMES, Mapper
+    from cusfm_ros.pipeline.options import SWITCHES
 
     rclpy.init(args=list(args) if args is not None else None)
     node = rclpy.create_node("cusfm_mapper")
@@ -90,9 +78,8 @@ def main(args: Sequence[str] | None = None) -> int:
     logging.getLogger("cusfm_ros").addHandler(handler)
     logging.getLogger("cusfm_ros").setLevel(logging.INFO)
     try:
-        defaults = {"bag": "", "out": "", "config": "", "steps": list(STAGES),
-                    "frame_type": "", "optimize_extrinsics": False,
-                    "rolling_shutter_line_delay_s": 0.0, "colmap_binary": False, "rgb": False}
+        defaults = {"bag": "", "out": "", "config": "", "steps": list(STAGE_NAMES),
+                    **{name: None for name in SWITCHES}}
         values = {name: node.declare_parameter(name, default).value
                   for name, default in defaults.items()}
         if not values["bag"] or not values["out"]:
@@ -102,7 +89,7 @@ def main(args: Sequence[str] | None = None) -> int:
         report = Mapper(options).solve(values["bag"], values["out"], list(values["steps"]))
         latched = qos.QoSProfile(depth=1, durability=qos.DurabilityPolicy.TRANSIENT_LOCAL)
         publisher = node.create_publisher(interfaces.MapInfo, "~/map_info", latched)
-        rig = load_keyframes(Path(values["out"])).rig
+        rig = read_keyframes(RunDir(values["out"]).keyframes).rig
         publisher.publish(map_info_message(interfaces.MapInfo, node.get_clock().now().to_msg(),
                                            Path(values["out"]), report, rig))
         node.get_logger().info(f"map written to {values['out']} "

@@ -33,8 +33,6 @@ class PoseGraphOptions:
     """Whitened error at which the robust loss starts discounting a loop."""
     extrinsic_sigma_m: float = 0.001
     extrinsic_sigma_deg: float = 0.01
-    frame_type: str = "rig"
-    """``rig``: one node per rig sample; ``camera``: one node per image + extrinsic factors."""
     absolute_prior_sigma_m: float = 0.0
     """> 0: every node gets a prior at its initial pose (GNSS-like priors, or ground truth +
     noise); they fix the gauge instead of the first node."""
@@ -48,8 +46,6 @@ class PoseGraphOptions:
     def __post_init__(self) -> None:
         if self.robust not in ROBUST:
             raise ConfigError(f"robust loss must be one of {', '.join(ROBUST)}")
-        if self.frame_type not in ("rig", "camera"):
-            raise ConfigError(f"frame_type must be rig or camera, got {self.frame_type!r}")
 
 
 @dataclass(frozen=True)

@@ -17,11 +17,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
 from cusfm_ros.core.geometry import Rigid3, skew
+from cusfm_ros.core.relpose.two_view import TwoViewOptions, estimate_two_view
 from cusfm_ros.errors import ConfigError, GeometryError
 
 
@@ -52,20 +52,15 @@ def _two_view(points_cam: np.ndarray, points_map: np.ndarray, options: StereoPos
     if len(points_cam) < options.min_inliers:
         raise GeometryError(f"stereo pose: {len(points_cam)} {side} matches, need at least "
                             f"{options.min_inliers}")
-    cv2.setRNGSeed(options.seed)
-    essential, mask = cv2.findEssentialMat(points_cam, points_map, np.eye(3),
-                                           method=cv2.USAC_MAGSAC, prob=0.99999,
-                                           threshold=options.ransac_threshold)
-    if essential is None or essential.shape != (3, 3):
+    result = estimate_two_view(points_cam, points_map, TwoViewOptions(
+        options.ransac_threshold, confidence=0.99999, seed=options.seed))
+    if not result.success:
         raise GeometryError(f"stereo pose: no essential matrix for the {side} pair")
-    count, rotation, translation, mask = cv2.recoverPose(essential, points_cam, points_map,
-                                                         np.eye(3), mask=mask)
-    inliers = mask.ravel() > 0
-    if count < options.min_inliers:
-        raise GeometryError(f"stereo pose: only {count} {side} inliers (need "
+    if result.num_inliers < options.min_inliers:
+        raise GeometryError(f"stereo pose: only {result.num_inliers} {side} inliers (need "
                             f"{options.min_inliers}); the views barely overlap or the motion "
                             "is degenerate")
-    return rotation, translation.ravel() / np.linalg.norm(translation), inliers
+    return result.rotation, result.translation_direction, result.inlier_mask
 
 
 def _sampson(map_from_cam: np.ndarray, points_cam: np.ndarray, points_map: np.ndarray):

@@ -1,12 +1,101 @@
-"""Two-view geometric verification of matches: essential-matrix RANSAC (OpenCV USAC MAGSAC) on
-normalized coordinates, so every camera model works through ``unproject``."""
+"""The one two-view estimator: essential-matrix RANSAC (OpenCV USAC, MAGSAC++ scoring) on
+normalized camera coordinates, so every camera model works through ``normalized``.
+
+The RANSAC seed goes into ``cv2.UsacParams.randomGeneratorState``; OpenCV's global RNG is never
+touched (no ``cv2.setRNGSeed``), so callers get no hidden side effect.
+"""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from cusfm_ros.core.cameras import CameraBase
+
+_IDENTITY = np.eye(3)
+_NO_DISTORTION = np.zeros((1, 5))
+
+
+@dataclass(frozen=True)
+class TwoViewOptions:
+    threshold: float = 1e-3
+    """RANSAC threshold in normalized coordinates (pixels / focal length)."""
+    confidence: float = 0.9999
+    max_iterations: int = 1000
+    seed: int = 0
+
+
+@dataclass
+class TwoViewResult:
+    """``cam1_from_cam0`` from matched normalized points x0 (view 0) and x1 (view 1)."""
+
+    success: bool
+    inlier_mask: np.ndarray
+    """(K,) bool: inliers of the essential matrix (and, after ``recover_pose``, cheirality)."""
+    essential: np.ndarray | None = None
+    rotation: np.ndarray | None = None
+    """cam1_from_cam0 rotation (3, 3)."""
+    translation_direction: np.ndarray | None = None
+    """Unit translation of cam1_from_cam0 (scale unknown from two views)."""
+
+    @property
+    def num_inliers(self) -> int:
+        return int(self.inlier_mask.sum())
+
+
+def _usac_params(options: TwoViewOptions) -> cv2.UsacParams:
+    params = cv2.UsacParams()
+    params.confidence = options.confidence
+    params.threshold = options.threshold
+    params.maxIterations = options.max_iterations
+    params.randomGeneratorState = int(options.seed) & 0x7FFFFFFF
+    params.sampler = cv2.SAMPLING_UNIFORM
+    params.score = cv2.SCORE_METHOD_MAGSAC
+    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
+    params.loIterations = 10
+    params.loSampleSize = 14
+    params.final_polisher = cv2.MAGSAC
+    params.final_polisher_iterations = 10
+    params.isParallel = False
+    return params
+
+
+def estimate_two_view(x0: np.ndarray, x1: np.ndarray, options: TwoViewOptions = TwoViewOptions(),
+                      recover_pose: bool = True) -> TwoViewResult:
+    """Essential matrix (and with ``recover_pose`` the relative pose) of normalized points."""
+    x0 = np.ascontiguousarray(x0, np.float64).reshape(-1, 2)
+    x1 = np.ascontiguousarray(x1, np.float64).reshape(-1, 2)
+    failed = TwoViewResult(False, np.zeros(len(x0), bool))
+    if len(x0) < 5:
+        return failed
+    essential, mask = cv2.findEssentialMat(x0, x1, _IDENTITY, _IDENTITY, _NO_DISTORTION,
+                                           _NO_DISTORTION, _usac_params(options))
+    if essential is None or essential.shape != (3, 3) or mask is None:
+        return failed
+    inliers = mask.ravel() > 0
+    if not recover_pose:
+        return TwoViewResult(True, inliers, essential)
+    _, rotation, translation, mask = cv2.recoverPose(essential, x0, x1, _IDENTITY,
+                                                     mask=inliers.astype(np.uint8))
+    norm = float(np.linalg.norm(translation))
+    return TwoViewResult(True, mask.ravel() > 0, essential, rotation,
+                         translation.ravel() / max(norm, 1e-12))
+
+
+def normalized_matches(keypoints0_px: np.ndarray, keypoints1_px: np.ndarray,
+                       camera0: CameraBase, camera1: CameraBase
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalized coordinates of matched keypoints and the mask of those in front of both."""
+    x0, front0 = camera0.normalized(np.asarray(keypoints0_px, np.float64))
+    x1, front1 = camera1.normalized(np.asarray(keypoints1_px, np.float64))
+    return x0, x1, front0 & front1
+
+
+def threshold_normalized(threshold_px: float, camera0: CameraBase, camera1: CameraBase) -> float:
+    """A pixel threshold in normalized units of a camera pair (geometric mean focal length)."""
+    return threshold_px / np.sqrt(camera0.focal_px * camera1.focal_px)
 
 
 def essential_inliers(keypoints0_px: np.ndarray, keypoints1_px: np.ndarray,
@@ -15,18 +104,12 @@ def essential_inliers(keypoints0_px: np.ndarray, keypoints1_px: np.ndarray,
     """(K,) inlier mask of matched keypoints ``(K, 2)`` under one essential matrix.
 
     Fewer than 8 usable (in front of both cameras) matches give no inliers."""
-    x0, front0 = camera0.normalized(np.asarray(keypoints0_px, np.float64))
-    x1, front1 = camera1.normalized(np.asarray(keypoints1_px, np.float64))
-    front = front0 & front1
+    x0, x1, front = normalized_matches(keypoints0_px, keypoints1_px, camera0, camera1)
     mask = np.zeros(len(x0), bool)
     if front.sum() < 8:
         return mask
-    cv2.setRNGSeed(seed)
-    threshold = threshold_px / np.sqrt(camera0.focal_px * camera1.focal_px)
-    essential, inliers = cv2.findEssentialMat(x0[front], x1[front], np.eye(3),
-                                              method=cv2.USAC_MAGSAC, prob=0.9999,
-                                              threshold=threshold)
-    if essential is None or essential.shape != (3, 3) or inliers is None:
-        return mask
-    mask[np.nonzero(front)[0]] = inliers.ravel() > 0
+    result = estimate_two_view(x0[front], x1[front], TwoViewOptions(
+        threshold_normalized(threshold_px, camera0, camera1), seed=seed), recover_pose=False)
+    if result.success:
+        mask[np.nonzero(front)[0]] = result.inlier_mask
     return mask

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from cusfm_ros.core.cameras import CameraBase
 from cusfm_ros.core.features.types import Features, Matches
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.relpose.two_view import (TwoViewOptions, estimate_two_view,
+                                             normalized_matches, threshold_normalized)
 from cusfm_ros.errors import ConfigError
 
 
@@ -28,7 +30,6 @@ class LoopOptions:
     min_inlier_ratio: float = 0.5
     """Of the matches; wrong loops rarely pass both on textured scenes."""
     ransac_threshold_px: float = 1.0
-    seed: int = 0
 
     def __post_init__(self) -> None:
         if self.top_k < 1 or self.min_inliers < 5 or not 0 <= self.min_inlier_ratio <= 1:
@@ -47,26 +48,38 @@ class Verification:
 
 
 def verify_pair(features0: Features, features1: Features, matches: Matches,
-                camera0: CameraBase, camera1: CameraBase, options: LoopOptions) -> Verification:
+                camera0: CameraBase, camera1: CameraBase, options: LoopOptions,
+                seed: int = 0) -> Verification:
     """Essential-matrix RANSAC between two calibrated views; accept on enough inliers."""
     if len(matches) < max(options.min_inliers, 5):
         return Verification(False, 0, len(matches))
-    x0, front0 = camera0.normalized(features0.keypoints_px[matches.indices[:, 0]])
-    x1, front1 = camera1.normalized(features1.keypoints_px[matches.indices[:, 1]])
-    front = front0 & front1
+    x0, x1, front = normalized_matches(features0.keypoints_px[matches.indices[:, 0]],
+                                       features1.keypoints_px[matches.indices[:, 1]],
+                                       camera0, camera1)
     if front.sum() < options.min_inliers:
         return Verification(False, 0, len(matches))
-    x0, x1 = x0[front], x1[front]
-    cv2.setRNGSeed(options.seed)
-    threshold = options.ransac_threshold_px / np.sqrt(camera0.focal_px * camera1.focal_px)
-    essential, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.USAC_MAGSAC,
-                                           prob=0.9999, threshold=threshold)
-    if essential is None or essential.shape != (3, 3):
+    result = estimate_two_view(x0[front], x1[front], TwoViewOptions(
+        threshold_normalized(options.ransac_threshold_px, camera0, camera1), seed=seed))
+    if not result.success:
         return Verification(False, 0, len(matches))
-    count, rotation, translation, mask = cv2.recoverPose(essential, x0, x1, np.eye(3),
-                                                         mask=mask)
-    inliers = int(count)
+    inliers = result.num_inliers
     accepted = (inliers >= options.min_inliers
                 and inliers >= options.min_inlier_ratio * len(matches))
-    return Verification(accepted, inliers, len(matches), rotation,
-                        translation.ravel() / max(np.linalg.norm(translation), 1e-12))
+    return Verification(accepted, inliers, len(matches), result.rotation,
+                        result.translation_direction)
+
+
+@dataclass(frozen=True)
+class LoopRecord:
+    """One verified loop closure between a later (query) and an earlier (match) keyframe."""
+
+    query_image: str
+    match_image: str
+    query_stamp_ns: int
+    match_stamp_ns: int
+    inliers: int
+    matches: int
+    score: float
+    """BoW similarity of the candidate."""
+    match_cam_from_query_cam: Rigid3
+    """Two-view relative pose; its translation is a unit direction (scale unknown)."""

@@ -1,16 +1,18 @@
-"""The keyframe stage: bag -> ``RUN_DIR/keyframes/`` (images + frames_meta.json).
+"""The keyframes stage: bag -> ``RUN_DIR/keyframes/`` (images + keyframes.json).
 
 Two streaming passes over the bag keep memory bounded: the first reads calibration, transforms,
 poses and only the *header stamps* of images; the second decodes just the images of the
 selected keyframes and writes them out. The output directory is written to a temporary path and
-renamed at the end, and is reused on a later run with the same bag and options (resumable).
+renamed at the end. ``extract_keyframes(bag, options, out_dir)`` is the stage on explicit
+inputs; ``KeyframesStage`` runs it on a run directory (the runner decides about reuse).
 
 Outputs:
 - ``keyframes/<camera>/<stamp_ns>.png`` — keyframe images;
-- ``keyframes/frames_meta.json`` — pyCuSFM-compatible keyframe metadata with intrinsics,
-  ``rig_from_cam`` extrinsics and initial ``world_from_cam`` poses;
+- ``keyframes/keyframes.json`` — the keyframe record (nanosecond stamps, cameras, rig,
+  initial ``world_from_cam`` poses) every later stage reads;
+- ``keyframes/frames_meta.json`` — the same in pyCuSFM's format (export only; microseconds);
 - ``keyframes/initial_poses.tum`` — ``world_from_base_link`` of each keyframe rig sample;
-- ``keyframes/stage.json`` — options, source bag, counts and timings.
+- ``keyframes/stage.json`` — source bag, pose source and counts.
 """
 
 from __future__ import annotations
@@ -38,12 +40,14 @@ from cusfm_ros.io.bags.layout import BagLayout, CameraStream, discover_layout
 from cusfm_ros.io.bags.reader import BagReader
 from cusfm_ros.io.bags.tf import TransformTree
 from cusfm_ros.io.extrinsics_yaml import read_extrinsics
-from cusfm_ros.io.frames_meta import read_frames_meta, write_frames_meta
+from cusfm_ros.io.bags.identity import bag_identity
+from cusfm_ros.io.digest import file_digest
+from cusfm_ros.io.frames_meta import write_frames_meta
+from cusfm_ros.io.keyframes_file import write_keyframes
 from cusfm_ros.io.tum import write_tum
-from cusfm_ros.pipeline.options import options_as_dict
+from cusfm_ros.pipeline.stage import Stage, StageContext
 
 logger = logging.getLogger(__name__)
-STAGE_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -80,33 +84,48 @@ class KeyframeResult:
     num_samples: int
     num_keyframe_samples: int
     seconds: float
-    reused: bool = False
+    pose_source: str = ""
+
+    def counts(self) -> dict:
+        return {"images_in_bag": self.num_images_in_bag, "rig_samples": self.num_samples,
+                "keyframe_samples": self.num_keyframe_samples,
+                "keyframes": len(self.keyframe_set.keyframes),
+                "cameras": len(self.keyframe_set.rig), "pose_source": self.pose_source}
 
 
-class KeyframeStage:
+def extract_keyframes(bag_path: str | os.PathLike, out_dir: str | os.PathLike,
+                      options: KeyframeOptions = KeyframeOptions()) -> KeyframeResult:
+    """Read ``bag_path`` and write its keyframes to ``out_dir`` (replaced atomically)."""
+    return KeyframeExtractor(options).solve(bag_path, out_dir)
+
+
+class KeyframesStage(Stage):
+    name = "keyframes"
+    sections = {"keyframes": KeyframeOptions}
+    reads = ("keyframes",)
+    outputs = ("keyframes_dir",)
+
+    def external_inputs(self, context: StageContext) -> dict:
+        if context.bag is None:
+            raise ConfigError("the keyframes stage needs a bag")
+        extrinsics = context.options.keyframes.extrinsics_file
+        return {"bag": bag_identity(context.bag),
+                "extrinsics_file": file_digest(Path(extrinsics)) if extrinsics and
+                Path(extrinsics).is_file() else extrinsics}
+
+    def run(self, context: StageContext) -> dict:
+        result = extract_keyframes(context.bag, context.run.keyframes_dir,
+                                   context.options.keyframes)
+        return result.counts()
+
+
+class KeyframeExtractor:
     def __init__(self, options: KeyframeOptions = KeyframeOptions()) -> None:
         self.options = options
 
-    # ----------------------------------------------------------------------------- resume
-    def _fingerprint(self, bag: Path) -> dict:
-        stat = bag.stat() if bag.is_file() else (bag / "metadata.yaml").stat()
-        return {"version": STAGE_VERSION, "bag": str(bag.resolve()), "bag_mtime_ns":
-                stat.st_mtime_ns, "options": options_as_dict(self.options)}
-
-    def solve(self, bag_path: str | os.PathLike, run_dir: str | os.PathLike,
-              overwrite: bool = False) -> KeyframeResult:
-        bag_path, out = Path(bag_path), Path(run_dir) / "keyframes"
+    def solve(self, bag_path: str | os.PathLike, out_dir: str | os.PathLike) -> KeyframeResult:
+        bag_path, out = Path(bag_path), Path(out_dir)
         reader = BagReader(bag_path)  # validates the path before anything else
-        fingerprint = self._fingerprint(bag_path)
-        stage_file = out / "stage.json"
-        if not overwrite and stage_file.is_file():
-            previous = json.loads(stage_file.read_text())
-            if previous.get("fingerprint") == fingerprint:
-                logger.info("keyframes: reusing %s (same bag and options)", out)
-                counts = previous["counts"]
-                return KeyframeResult(out, read_frames_meta(out / "frames_meta.json"),
-                                      counts["images_in_bag"], counts["rig_samples"],
-                                      counts["keyframe_samples"], 0.0, reused=True)
         started = time.perf_counter()
         with reader as bag:
             layout = self._layout(bag)
@@ -123,18 +142,14 @@ class KeyframeStage:
             with atomic_directory(out) as tmp:
                 keyframe_set = self._write(bag, layout, rig, samples, sample_poses, chosen, tmp,
                                            world_from_base)
-                counts = {"images_in_bag": scan["num_images"], "rig_samples": len(samples),
-                          "keyframe_samples": int(len(chosen)),
-                          "keyframes": len(keyframe_set.keyframes),
-                          "cameras": len(rig)}
                 seconds = time.perf_counter() - started
+                result = KeyframeResult(out, keyframe_set, scan["num_images"], len(samples),
+                                        int(len(chosen)), seconds, pose_source)
                 (tmp / "stage.json").write_text(json.dumps(
-                    {"fingerprint": fingerprint, "counts": counts, "pose_source": pose_source,
-                     "seconds": seconds}, indent=2))
+                    {"bag": str(bag_path), "counts": result.counts()}, indent=2))
         logger.info("keyframes: wrote %d keyframes of %d cameras to %s in %.1f s",
                     len(keyframe_set.keyframes), len(rig), out, seconds)
-        return KeyframeResult(out, keyframe_set, scan["num_images"], len(samples), len(chosen),
-                              seconds)
+        return result
 
     # ----------------------------------------------------------------------------- layout
     def _layout(self, bag: BagReader) -> BagLayout:
@@ -357,6 +372,7 @@ class KeyframeStage:
         keyframes = [replace(keyframes[old], keyframe_id=str(new))
                      for new, old in enumerate(order)]
         keyframe_set = KeyframeSet(rig, keyframes, "EGO_MOTION")
+        write_keyframes(tmp / "keyframes.json", keyframe_set)
         write_frames_meta(tmp / "frames_meta.json", keyframe_set)
         selected = sorted(world_from_base_all)
         write_tum(tmp / "initial_poses.tum", Trajectory(

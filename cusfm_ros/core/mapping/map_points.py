@@ -1,0 +1,44 @@
+"""The sparse map: triangulated points and the observations that support them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cusfm_ros.errors import MappingError
+
+
+@dataclass
+class MapPoints:
+    """Points ``points3d_in_world`` (P, 3) and their observations, one row per observation:
+    the point it belongs to, the image (by name), the keypoint index in that image's
+    features, its pixel position and its reprojection error."""
+
+    points3d_in_world: np.ndarray
+    obs_point: np.ndarray
+    obs_image: np.ndarray
+    obs_keypoint: np.ndarray
+    obs_uv_px: np.ndarray
+    obs_error_px: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.points3d_in_world = np.asarray(self.points3d_in_world, np.float64).reshape(-1, 3)
+        self.obs_point = np.asarray(self.obs_point, np.int64).reshape(-1)
+        self.obs_image = np.asarray(self.obs_image, dtype=str).reshape(-1)
+        self.obs_keypoint = np.asarray(self.obs_keypoint, np.int64).reshape(-1)
+        self.obs_uv_px = np.asarray(self.obs_uv_px, np.float64).reshape(-1, 2)
+        self.obs_error_px = np.asarray(self.obs_error_px, np.float32).reshape(-1)
+        m = len(self.obs_point)
+        if not all(len(a) == m for a in (self.obs_image, self.obs_keypoint, self.obs_uv_px,
+                                         self.obs_error_px)):
+            raise MappingError("map points: observation arrays differ in length")
+        if m and (self.obs_point.min() < 0 or self.obs_point.max() >= len(self)):
+            raise MappingError("map points: an observation names a point that does not exist")
+
+    def __len__(self) -> int:
+        return len(self.points3d_in_world)
+
+    @property
+    def num_observations(self) -> int:
+        return len(self.obs_point)

@@ -1,0 +1,271 @@
+"""The bundle-adjustment structure of a keyframe set: which optimized node each image belongs
+to, the sequential and rigid relative factors, the tracks as normalized observations, and the
+read-out of refined rig poses, their quality and their pixel reprojection errors.
+
+Rig frame type: one node per rig sample and one extrinsic per camera. Camera frame type: one
+node per image, tied to the others of its sample by the calibrated extrinsics.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from cusfm_ros.core.features.types import Matches
+from cusfm_ros.core.geometry import invert_matrices, se3_log
+from cusfm_ros.core.keyframes import KeyframeSet
+from cusfm_ros.core.mapping.bundle_adjustment import BundleOptions, RelativeFactors
+from cusfm_ros.core.mapping.iterative import MappingInput, MappingResult, empty_template
+from cusfm_ros.core.mapping.tracks import build_tracks
+from cusfm_ros.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+FRAME_TYPES = ("rig", "camera")
+
+
+@dataclass
+class PoseStructure:
+    """How images map onto optimized nodes."""
+
+    frame_type: str
+    sample_ids: list[str]
+    sample_stamps_ns: np.ndarray
+    input_world_from_rig: np.ndarray
+    start_world_from_rig: np.ndarray
+    images: list
+    """Keyframes in the order of image indices (time, then camera name)."""
+    node_stamps_ns: np.ndarray
+    template: object
+    next_node: np.ndarray
+    """(N,) node to interpolate towards under a rolling shutter (-1: none)."""
+
+
+@dataclass
+class Observations:
+    """Tracks over verified matches as normalized observations, ready for the mapper."""
+
+    data: MappingInput
+    obs_keypoint: np.ndarray
+    obs_uv_px: np.ndarray
+    component_sizes: list[int]
+    counts: dict
+
+
+def _relative(a, b, poses, sigma_m, sigma_deg) -> RelativeFactors:
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    return RelativeFactors(a, b, invert_matrices(poses[a]) @ poses[b],
+                           np.full(len(a), sigma_m), np.full(len(a), sigma_deg))
+
+
+def _concat(factors: list[RelativeFactors]) -> RelativeFactors:
+    return RelativeFactors(*(np.concatenate([getattr(f, k) for f in factors]) for k in
+                             ("a", "b", "a_from_b", "sigma_m", "sigma_deg")))
+
+
+def build_pose_structure(keyframes: KeyframeSet, start_world_from_rig: np.ndarray,
+                         measured_world_from_rig: np.ndarray, frame_type: str,
+                         bundle: BundleOptions = BundleOptions(),
+                         fixed_samples: tuple[str, ...] = (),
+                         optimize_extrinsics: bool = False) -> PoseStructure:
+    """Nodes, sequential factors (relative motion of ``measured_world_from_rig``), rigid
+    factors (camera frame type) and fixed nodes; poses are per rig sample in time order."""
+    if frame_type not in FRAME_TYPES:
+        raise ConfigError(f"frame type must be rig or camera, got {frame_type!r}")
+    rig = keyframes.rig
+    sample_ids, sample_stamps, input_poses = keyframes.sample_poses()
+    start, measured = np.asarray(start_world_from_rig), np.asarray(measured_world_from_rig)
+    position = {s: i for i, s in enumerate(sample_ids)}
+    images = keyframes.images_in_time_order()
+    image_sample = np.array([position[k.sample_id] for k in images], np.int64)
+    cameras = rig.names
+    image_camera = np.array([cameras.index(k.camera_name) for k in images], np.int64)
+    rig_from_cam = np.stack([rig[c].rig_from_cam.matrix() for c in cameras])
+    unknown = sorted(set(fixed_samples) - set(position))
+    if unknown:
+        raise ConfigError(f"mapping.fixed_samples names unknown rig samples {unknown[:5]}")
+    fixed = np.array([position[s] for s in fixed_samples], np.int64)
+    b = bundle
+    if frame_type == "rig":
+        sequential = _relative(np.arange(len(sample_ids) - 1), np.arange(1, len(sample_ids)),
+                               measured, b.relative_sigma_m, b.relative_sigma_deg)
+        template = empty_template(start, rig_from_cam, image_sample, image_camera,
+                                  sequential, fixed, optimize_extrinsics)
+        node_stamps = sample_stamps
+        next_node = np.r_[np.arange(1, len(sample_ids)), len(sample_ids) - 2]
+    else:
+        input_cam = measured[image_sample] @ rig_from_cam[image_camera]
+        start_cam = start[image_sample] @ rig_from_cam[image_camera]
+        factors, next_node = [], np.full(len(images), -1)
+        for c in range(len(cameras)):
+            chain = np.nonzero(image_camera == c)[0]
+            if len(chain) > 1:
+                factors.append(_relative(chain[:-1], chain[1:], input_cam,
+                                         b.relative_sigma_m, b.relative_sigma_deg))
+                next_node[chain[:-1]] = chain[1:]
+                next_node[chain[-1]] = chain[-2]
+        for s in range(len(sample_ids)):
+            members = np.nonzero(image_sample == s)[0]
+            factors.append(_relative(np.full(len(members) - 1, members[0]), members[1:],
+                                     start_cam, b.rigid_sigma_m, b.rigid_sigma_deg))
+        fixed_images = np.nonzero(np.isin(image_sample, fixed))[0]
+        template = empty_template(start_cam, np.eye(4)[None], np.arange(len(images)),
+                                  np.zeros(len(images), np.int64),
+                                  _concat(factors), fixed_images, False)
+        node_stamps = np.array([k.stamp_ns for k in images], np.int64)
+    if len(node_stamps) < 2:
+        next_node = np.full(len(node_stamps), -1)
+    return PoseStructure(frame_type, sample_ids, sample_stamps, input_poses, start, images,
+                         node_stamps, template, next_node)
+
+
+def view_graph_components(num_images: int, edges: list[tuple[int, int]]) -> list[int]:
+    """Sizes of the connected components of the image graph, largest first."""
+    if not edges:
+        return [num_images]
+    rows = np.array([i for i, _ in edges])
+    cols = np.array([j for _, j in edges])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(num_images, num_images))
+    count, label = connected_components(graph, directed=False)
+    sizes = sorted(np.bincount(label, minlength=count).tolist(), reverse=True)
+    if count > 1:
+        logger.warning("mapping: the view graph has %d components (images per component: "
+                       "%s); each is mapped, held together only by the odometry factors",
+                       count, sizes[:10])
+    return sizes
+
+
+def build_observations(keyframes: KeyframeSet, structure: PoseStructure,
+                       keypoints_px: list[np.ndarray],
+                       pair_matches: list[tuple[int, int, Matches]],
+                       rolling_shutter_line_delay_s: float = 0.0) -> Observations:
+    """Tracks over the verified matches (image indices of ``structure.images``), as
+    normalized observations; rays too far off the optical axis (fisheye edges) are dropped."""
+    images = structure.images
+    used = [(i, j, m.indices) for i, j, m in pair_matches if len(m)]
+    components = view_graph_components(len(images), [(i, j) for i, j, _ in used])
+    tracks = build_tracks([len(k) for k in keypoints_px], used,
+                          confidences=[m.confidences for _, _, m in pair_matches if len(m)])
+    obs_uv = np.zeros((len(tracks.image), 2))
+    for i in np.unique(tracks.image):
+        sel = tracks.image == i
+        obs_uv[sel] = keypoints_px[i][tracks.keypoint[sel]]
+    obs_xy = np.zeros_like(obs_uv)
+    obs_per_px = np.ones(len(obs_uv))
+    front = np.zeros(len(obs_uv), bool)
+    rig = keyframes.rig
+    image_camera = np.array([k.camera_name for k in images])
+    for name in rig.names:
+        sel = np.isin(tracks.image, np.nonzero(image_camera == name)[0])
+        obs_xy[sel], front[sel] = rig[name].camera.normalized(obs_uv[sel])
+        obs_per_px[sel] = rig[name].camera.normalized_per_px(obs_uv[sel])
+    if len(tracks):
+        keep_track = np.add.reduceat(front.astype(np.int64), tracks.offsets[:-1]) >= 2
+        keep = front & np.repeat(keep_track, tracks.lengths)
+        lengths = np.add.reduceat(keep.astype(np.int64), tracks.offsets[:-1])[keep_track]
+    else:
+        keep, lengths = np.zeros(0, bool), np.zeros(0, np.int64)
+    offsets = np.r_[0, np.cumsum(lengths)].astype(np.int64)
+    obs_image = tracks.image[keep]
+    data = MappingInput(structure.template, obs_image, obs_xy[keep], obs_per_px[keep], offsets)
+    if rolling_shutter_line_delay_s > 0:
+        data.obs_next_node, data.obs_alpha = rolling_shutter_interpolation(
+            structure, obs_image, obs_uv[keep][:, 1], rolling_shutter_line_delay_s)
+    counts = {"pairs": len(pair_matches), "pairs_with_matches": len(used),
+              "verified_matches": int(sum(len(m) for _, _, m in used)),
+              "tracks": int(len(offsets) - 1), "conflicting_matches_dropped": tracks.rejected,
+              "track_observations": int(len(obs_image)), "view_graph_components":
+              len(components)}
+    return Observations(data, tracks.keypoint[keep], obs_uv[keep], components, counts)
+
+
+def rolling_shutter_interpolation(structure: PoseStructure, obs_image: np.ndarray,
+                                  obs_row_px: np.ndarray, line_delay_s: float
+                                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Per observation: the neighbouring node and the fraction of the way to it at the
+    observation's row time (image stamp + row * line delay)."""
+    node = structure.template.image_node[obs_image]
+    image_stamp = np.array([k.stamp_ns for k in structure.images], np.int64)[obs_image]
+    node_stamp = structure.node_stamps_ns[node]
+    other = structure.next_node[node]
+    offset_s = (image_stamp - node_stamp) * 1e-9 + np.clip(obs_row_px, 0, None) * line_delay_s
+    span_s = (structure.node_stamps_ns[np.maximum(other, 0)] - node_stamp) * 1e-9
+    ok = (other >= 0) & (np.abs(span_s) > 0)
+    alpha = np.where(ok, offset_s / np.where(ok, span_s, 1.0), 0.0)
+    return np.where(ok, other, -1), alpha
+
+
+def refined_world_from_rig(structure: PoseStructure, result: MappingResult,
+                           keyframes: KeyframeSet) -> np.ndarray:
+    """(S, 4, 4) world_from_rig per rig sample from the refined nodes."""
+    if structure.frame_type == "rig":
+        return result.world_from_node
+    out = np.zeros((len(structure.sample_ids), 4, 4))
+    position = {s: i for i, s in enumerate(structure.sample_ids)}
+    for i, keyframe in enumerate(structure.images):
+        s = position[keyframe.sample_id]
+        if not out[s, 3, 3]:
+            out[s] = result.world_from_node[i] @ invert_matrices(
+                keyframes.rig[keyframe.camera_name].rig_from_cam.matrix())
+    return out
+
+
+def mapping_quality(structure: PoseStructure, world_from_rig: np.ndarray,
+                    result: MappingResult, max_pose_change_m: float) -> dict:
+    """How far the refined poses moved from their start and from the input's relative motion;
+    ``suspicious`` lists the reasons to believe they are worse."""
+    start = structure.start_world_from_rig
+    moved = np.linalg.norm(world_from_rig[:, :3, 3] - start[:, :3, 3], axis=1)
+    inp = structure.input_world_from_rig
+    rel_in = invert_matrices(inp[:-1]) @ inp[1:]
+    rel_out = invert_matrices(world_from_rig[:-1]) @ world_from_rig[1:]
+    delta = se3_log(invert_matrices(rel_in) @ rel_out) if len(inp) > 1 else np.zeros((0, 6))
+    first, last = result.rounds[0], result.rounds[-1]
+    quality = {"max_pose_change_m": float(moved.max(initial=0.0)),
+               "median_odometry_step_change_m": float(np.median(
+                   np.linalg.norm(delta[:, 3:], axis=1))) if len(delta) else 0.0,
+               "error_px_first_round": first["mean_error_px"],
+               "error_px_last_round": last["mean_error_px"]}
+    suspicious = []
+    if quality["max_pose_change_m"] > max_pose_change_m:
+        suspicious.append(f"a pose moved {quality['max_pose_change_m']:.1f} m from its start")
+    if last["cost_after"] > last["cost_before"] * 1.0001:
+        suspicious.append("the final adjustment increased the cost")
+    quality["suspicious"] = suspicious
+    for reason in suspicious:
+        logger.warning("mapping: refined poses may be worse than the input: %s", reason)
+    return quality
+
+
+def pixel_errors(keyframes: KeyframeSet, structure: PoseStructure, observations: Observations,
+                 result: MappingResult) -> tuple[dict, np.ndarray]:
+    """Reprojection error statistics (pixels, through each camera's own model) of the inlier
+    observations, and the per-observation errors."""
+    data = observations.data
+    obs = result.inliers
+    track_of_obs = np.repeat(np.arange(len(data.offsets) - 1), np.diff(data.offsets))
+    problem = replace(data.template, world_from_node=result.world_from_node,
+                      node_from_sensor=result.node_from_sensor, points=result.points,
+                      obs_image=data.obs_image[obs], obs_point=track_of_obs[obs],
+                      obs_xy=data.obs_xy[obs],
+                      obs_next_node=None if data.obs_next_node is None
+                      else data.obs_next_node[obs],
+                      obs_alpha=None if data.obs_alpha is None else data.obs_alpha[obs])
+    cam_from_world = problem.observation_poses()
+    in_cam = np.einsum("nij,nj->ni", cam_from_world[:, :3, :3],
+                       result.points[track_of_obs[obs]]) + cam_from_world[:, :3, 3]
+    errors = np.full(int(obs.sum()), np.nan)
+    cameras = np.array([k.camera_name for k in structure.images])[data.obs_image[obs]]
+    for name in keyframes.rig.names:
+        sel = cameras == name
+        if sel.any():
+            uv, _ = keyframes.rig[name].camera.project(in_cam[sel])
+            errors[sel] = np.linalg.norm(uv - observations.obs_uv_px[obs][sel], axis=1)
+    finite = errors[np.isfinite(errors)]
+    stats = {"mean": float(finite.mean()) if len(finite) else float("nan"),
+             "median": float(np.median(finite)) if len(finite) else float("nan"),
+             "p90": float(np.percentile(finite, 90)) if len(finite) else float("nan")}
+    return stats, errors.astype(np.float32)

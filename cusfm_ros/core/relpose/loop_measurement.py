@@ -1,0 +1,70 @@
+"""The metric rig-to-rig relative pose of a verified loop (or a sequential pair), for the pose
+graph: from the stereo relative pose when the query camera has a stereo partner in its rig
+sample (paper section 4.1), else from the two-view rotation and direction with the prior's
+distance as scale."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.relpose.stereo import StereoPoseOptions, stereo_relative_pose
+from cusfm_ros.core.rig import Rig
+from cusfm_ros.errors import GeometryError
+
+
+@dataclass(frozen=True)
+class LoopView:
+    """One image of a loop: its camera and keypoints (pixels)."""
+
+    camera_name: str
+    keypoints_px: np.ndarray
+
+
+@dataclass(frozen=True)
+class LoopMeasurement:
+    rig_match_from_rig_query: Rigid3
+    how: str
+    """``stereo`` or ``two-view + prior scale``."""
+
+
+def measure_loop(rig: Rig, query: LoopView, match: LoopView, matches_query_match: np.ndarray,
+                 partner: LoopView | None = None,
+                 matches_partner_match: np.ndarray | None = None,
+                 two_view_match_from_query: Rigid3 | None = None,
+                 prior_rig_match_from_rig_query: Rigid3 | None = None,
+                 seed: int = 0) -> LoopMeasurement:
+    """``rig_match_from_rig_query`` of one loop.
+
+    ``matches_*`` are (K, 2) keypoint index pairs. With ``partner`` (the query camera's stereo
+    partner in the same rig sample) the stereo relative pose gives a metric measurement;
+    without it, ``two_view_match_from_query`` (unit translation) is scaled by the distance of
+    ``prior_rig_match_from_rig_query``. Raises ``GeometryError`` when neither works."""
+    rig_from_q = rig[query.camera_name].rig_from_cam
+    rig_from_m = rig[match.camera_name].rig_from_cam
+    if partner is not None and matches_partner_match is not None:
+        cam_q, cam_p = rig[query.camera_name].camera, rig[partner.camera_name].camera
+        cam_m = rig[match.camera_name].camera
+        mq, mp = np.asarray(matches_query_match), np.asarray(matches_partner_match)
+        xq, fq = cam_q.normalized(query.keypoints_px[mq[:, 0]])
+        xmq, fmq = cam_m.normalized(match.keypoints_px[mq[:, 1]])
+        xp, fp = cam_p.normalized(partner.keypoints_px[mp[:, 0]])
+        xmp, fmp = cam_m.normalized(match.keypoints_px[mp[:, 1]])
+        q_from_p = rig_from_q.inverse() * rig[partner.camera_name].rig_from_cam
+        result = stereo_relative_pose(
+            xq[fq & fmq], xmq[fq & fmq], xp[fp & fmp], xmp[fp & fmp], q_from_p,
+            StereoPoseOptions(ransac_threshold=1.0 / cam_q.focal_px, seed=seed))
+        m_from_q, how = result.map_from_left, "stereo"
+    else:
+        if two_view_match_from_query is None or prior_rig_match_from_rig_query is None:
+            raise GeometryError("no stereo partner image in the query's rig sample and no "
+                                "two-view pose with a prior to scale it")
+        prior = rig_from_m.inverse() * prior_rig_match_from_rig_query * rig_from_q
+        distance = float(np.linalg.norm(prior.translation))
+        direction = two_view_match_from_query.translation
+        m_from_q = Rigid3(two_view_match_from_query.rotation,
+                          direction / max(np.linalg.norm(direction), 1e-12) * distance)
+        how = "two-view + prior scale"
+    return LoopMeasurement(rig_from_m * m_from_q * rig_from_q.inverse(), how)

@@ -1,0 +1,70 @@
+"""Content digests of run-directory artifacts (files and directories), cached by size and
+modification time so an unchanged multi-gigabyte store is hashed once, not on every run."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+from cusfm_ros.io.atomic import atomic_write
+
+_CHUNK = 1 << 20
+
+
+def file_digest(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while chunk := handle.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+class DigestCache:
+    """``digest(path)``: sha256 of a file's bytes, or of a directory's sorted (relative path,
+    file digest) list; hidden entries (temporary files) are left out."""
+
+    def __init__(self, cache_file: Path, root: Path) -> None:
+        self.cache_file = Path(cache_file)
+        self.root = Path(root)
+        self._entries: dict[str, dict] = {}
+        self._dirty = False
+        if self.cache_file.is_file():
+            try:
+                self._entries = json.loads(self.cache_file.read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+                self._entries = {}
+
+    def _file(self, path: Path) -> str:
+        stat = path.stat()
+        key = os.path.relpath(path, self.root)
+        entry = self._entries.get(key)
+        if entry and entry["size"] == stat.st_size and entry["mtime_ns"] == stat.st_mtime_ns:
+            return entry["sha256"]
+        value = file_digest(path)
+        self._entries[key] = {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
+                              "sha256": value}
+        self._dirty = True
+        return value
+
+    def digest(self, path: Path) -> str | None:
+        path = Path(path)
+        if path.is_file():
+            return self._file(path)
+        if not path.is_dir():
+            return None
+        digest = hashlib.sha256()
+        for folder, dirs, files in os.walk(path):
+            dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+            for name in sorted(f for f in files if not f.startswith(".")):
+                full = Path(folder) / name
+                digest.update(os.path.relpath(full, path).encode() + b"\0")
+                digest.update(self._file(full).encode() + b"\n")
+        return digest.hexdigest()
+
+    def save(self) -> None:
+        if self._dirty:
+            with atomic_write(self.cache_file) as handle:
+                json.dump(self._entries, handle)
+            self._dirty = False

@@ -1,0 +1,1 @@
+"""Staged orchestration: the stage contract, the runner, one module per stage, options."""

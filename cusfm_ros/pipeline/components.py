@@ -1,0 +1,140 @@
+"""Feature extractor and matcher options, nested per component, and the factories that build
+them (ONNX models are built on first use).
+
+YAML::
+
+    features:
+      extractor: {name: aliked, aliked: {max_keypoints: 2048, ...}, sift: {...}}
+      matcher:   {name: lightglue, lightglue: {filter_threshold: 0.1, ...}, knn: {...}}
+      backend: auto
+      model_dir: null
+
+Every knob of ``AlikedOptions``, ``SiftOptions``, ``LightGlueOptions`` and ``KnnOptions`` is
+reachable; ``device`` is set once at the top level and handed down.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+
+from cusfm_ros.core.features.aliked import AlikedExtractor, AlikedOptions
+from cusfm_ros.core.features.knn import KnnMatcher, KnnOptions
+from cusfm_ros.core.features.lightglue import LightGlueMatcher, LightGlueOptions
+from cusfm_ros.core.features.onnx_session import has_gpu_provider
+from cusfm_ros.core.features.sift import SiftExtractor, SiftOptions
+from cusfm_ros.errors import ConfigError
+from cusfm_ros.models.store import ensure_models
+from cusfm_ros.pipeline.config import options_as_dict
+
+logger = logging.getLogger(__name__)
+EXTRACTORS = ("aliked", "sift")
+MATCHERS = ("lightglue", "knn")
+BACKENDS = ("auto", "onnx", "torch")
+DEVICES = ("auto", "cpu", "cuda")
+
+
+@dataclass(frozen=True)
+class ExtractorOptions:
+    name: str = "aliked"
+    """``aliked`` (learned, ONNX) or ``sift`` (OpenCV)."""
+    aliked: AlikedOptions = field(default_factory=AlikedOptions)
+    sift: SiftOptions = field(default_factory=SiftOptions)
+
+    def __post_init__(self) -> None:
+        if self.name not in EXTRACTORS:
+            raise ConfigError(f"unknown extractor {self.name!r} (use {', '.join(EXTRACTORS)})")
+
+    @property
+    def selected(self):
+        """The options of the chosen extractor."""
+        return getattr(self, self.name)
+
+    def fingerprint(self) -> dict:
+        """What changes the features: the name and the chosen extractor's options."""
+        selected = options_as_dict(self.selected)
+        selected.pop("device", None)
+        selected.pop("threads", None)
+        return {"name": self.name, self.name: selected}
+
+
+@dataclass(frozen=True)
+class MatcherOptions:
+    name: str = "lightglue"
+    """``lightglue`` (for ALIKED) or ``knn`` (nearest neighbours, ratio test)."""
+    lightglue: LightGlueOptions = field(default_factory=LightGlueOptions)
+    knn: KnnOptions = field(default_factory=KnnOptions)
+
+    def __post_init__(self) -> None:
+        if self.name not in MATCHERS:
+            raise ConfigError(f"unknown matcher {self.name!r} (use {', '.join(MATCHERS)})")
+
+    @property
+    def selected(self):
+        return getattr(self, self.name)
+
+    def fingerprint(self) -> dict:
+        selected = options_as_dict(self.selected)
+        selected.pop("device", None)
+        selected.pop("threads", None)
+        return {"name": self.name, self.name: selected}
+
+
+@dataclass(frozen=True)
+class FeatureOptions:
+    extractor: ExtractorOptions = field(default_factory=ExtractorOptions)
+    matcher: MatcherOptions = field(default_factory=MatcherOptions)
+    backend: str = "auto"
+    """``onnx`` (onnxruntime), ``torch`` (needs torch; for GPUs without an ORT CUDA provider)
+    or ``auto``: torch only when a CUDA device is asked for and ORT cannot use it."""
+    model_dir: str | None = None
+    """ONNX model cache (default ``~/.cache/cusfm_ros/models`` or ``$CUSFM_MODEL_DIR``)."""
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"unknown backend {self.backend!r} (use {', '.join(BACKENDS)})")
+        if self.matcher.name == "lightglue" and self.extractor.name != "aliked":
+            raise ConfigError("the shipped LightGlue weights are for ALIKED; use --matcher knn "
+                              "with SIFT")
+
+    def use_torch(self, device: str) -> bool:
+        if self.backend == "torch":
+            return True
+        return self.backend == "auto" and device == "cuda" and not has_gpu_provider()
+
+
+def make_extractor(options: FeatureOptions, device: str = "auto"):
+    extractor = options.extractor
+    if extractor.name == "sift":
+        return SiftExtractor(extractor.sift)
+    aliked = replace(extractor.aliked, device=device)
+    if options.use_torch(device):
+        from cusfm_ros.models.torch_backend import TorchAlikedExtractor
+
+        return TorchAlikedExtractor(aliked)
+    return AlikedExtractor(ensure_models(options.model_dir), aliked)
+
+
+def make_matcher(options: FeatureOptions, device: str = "auto"):
+    matcher = options.matcher
+    if matcher.name == "knn":
+        return KnnMatcher(matcher.knn)
+    lightglue = replace(matcher.lightglue, device=device)
+    if options.use_torch(device):
+        from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
+
+        return TorchLightGlueMatcher(lightglue)
+    return LightGlueMatcher(ensure_models(options.model_dir), lightglue)
+
+
+class LazyMatcher:
+    """Builds the matcher on first use (loading LightGlue costs seconds; many runs reuse every
+    match from a cache and never need it)."""
+
+    def __init__(self, options: FeatureOptions, device: str = "auto") -> None:
+        self.options, self.device, self._matcher = options, device, None
+
+    def match(self, features0, features1):
+        if self._matcher is None:
+            self._matcher = make_matcher(self.options, self.device)
+        return self._matcher.match(features0, features1)

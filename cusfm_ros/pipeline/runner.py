@@ -1,0 +1,197 @@
+"""The generic stage runner: loops over the registry as COLMAP's ``GlobalMapper::Solve`` does
+(skip flag -> heading -> timer -> run) and owns resume and the report.
+
+Resume: each stage's fingerprint covers its version, the option values it ``reads`` and the
+content digests of its inputs (and, for the keyframes stage, the bag's identity). A stage
+reruns exactly when that fingerprint changed, when an output is missing, when its last run
+did not complete (killed: the record says ``running``), or on ``overwrite`` — never
+otherwise. Before a rerun with a changed fingerprint (or ``overwrite``) its outputs are
+removed; a killed run with an unchanged fingerprint is redone keeping the stores' complete
+entries. ``RUN_DIR/stages/<stage>.json`` records each stage's status, fingerprint, own
+options, input and output digests, counts and seconds; ``report.json`` is assembled from
+those records.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import platform
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from cusfm_ros import __version__
+from cusfm_ros.errors import ConfigError, CusfmError
+from cusfm_ros.io.atomic import atomic_write
+from cusfm_ros.io.digest import DigestCache
+from cusfm_ros.io.run_dir import RunDir
+from cusfm_ros.pipeline.config import options_as_dict
+from cusfm_ros.pipeline.stage import Stage, StageContext
+
+logger = logging.getLogger(__name__)
+
+
+def option_value(options: Any, path: str) -> Any:
+    value = options
+    for part in path.split("."):
+        value = getattr(value, part)
+    return options_as_dict(value) if hasattr(value, "__dataclass_fields__") else value
+
+
+def _fingerprint(payload: dict) -> str:
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()
+                          ).hexdigest()
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()
+
+
+def _read_record(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text()) if path.is_file() else None
+    except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+        return None
+
+
+def _versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for package in ("numpy", "scipy", "opencv-python-headless", "onnxruntime", "gtsam",
+                    "rosbags", "h5py", "scikit-learn"):
+        try:
+            out[package] = version(package)
+        except PackageNotFoundError:
+            out[package] = "not installed"
+    return out
+
+
+class StageRunner:
+    """Runs the registered stages named in ``steps`` on one run directory."""
+
+    def __init__(self, stages: tuple[Stage, ...], options: Any) -> None:
+        self.stages = stages
+        self.options = options
+        self.producer = {artifact: stage.name for stage in stages
+                         for artifact in stage.outputs + stage.optional_outputs}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(stage.name for stage in self.stages)
+
+    def check_steps(self, steps: list[str] | None) -> list[str]:
+        if steps is None:
+            return list(self.names)
+        unknown = [s for s in steps if s not in self.names]
+        if unknown:
+            raise ConfigError(f"unknown step(s) {unknown} (stages: {', '.join(self.names)})")
+        if not steps:
+            raise ConfigError("no stage left to run (every step named was also skipped)")
+        return [s for s in self.names if s in steps]
+
+    def solve(self, run_dir: str | Path, bag: str | Path | None = None,
+              steps: list[str] | None = None, overwrite: bool = False) -> dict:
+        run = RunDir(run_dir)
+        steps = self.check_steps(steps)
+        run.root.mkdir(parents=True, exist_ok=True)
+        digests = DigestCache(run.stages_dir / "digests.json", run.root)
+        started = time.perf_counter()
+        entries: dict[str, dict] = {}
+        try:
+            for index, stage in enumerate(s for s in self.stages if s.name in steps):
+                logger.info("=== stage %s (%d/%d) ===", stage.name, index + 1, len(steps))
+                entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite)
+        finally:
+            digests.save()
+        return self._report(run, bag, entries, time.perf_counter() - started)
+
+    # ----------------------------------------------------------------------------- a stage
+    def _run_stage(self, stage: Stage, run: RunDir, bag, digests: DigestCache,
+                   overwrite: bool) -> dict:
+        for artifact in stage.inputs:
+            if not getattr(run, artifact).exists():
+                producer = self.producer.get(artifact, "?")
+                raise CusfmError(f"{getattr(run, artifact)} is missing: the {stage.name} stage "
+                                 f"needs the output of the {producer} stage (run it first, "
+                                 f"e.g. --steps {producer} {stage.name})")
+        context = StageContext(run, self.options, Path(bag) if bag is not None else None)
+        context.input_digests = {a: digests.digest(getattr(run, a))
+                                 for a in stage.inputs + stage.optional_inputs}
+        own_options = {path: option_value(self.options, path) for path in stage.reads}
+        payload = {"stage": stage.name, "version": stage.version, "options": own_options,
+                   "inputs": context.input_digests, "external": stage.external_inputs(context)}
+        fingerprint = _fingerprint(payload)
+        record_path = run.stage_record(stage.name)
+        record = _read_record(record_path)
+        outputs_present = all(getattr(run, a).exists() for a in stage.outputs)
+        same = record is not None and record.get("fingerprint") == fingerprint
+        if not overwrite and same and record.get("status") == "complete" and outputs_present:
+            logger.info("%s: up to date (same options and inputs); reusing its outputs",
+                        stage.name)
+            return {**record, "reused": True, "seconds": 0.0}
+        context.resuming = (not overwrite and same and record.get("status") == "running")
+        if context.resuming:
+            logger.info("%s: its last run did not finish; redoing it (complete store entries "
+                        "are kept)", stage.name)
+        else:
+            if record is not None and not overwrite:
+                logger.info("%s: options or inputs changed; running it again", stage.name)
+            for artifact in stage.outputs + stage.optional_outputs:
+                _remove(getattr(run, artifact))
+        base = {"stage": stage.name, "fingerprint": fingerprint, "options": own_options,
+                "inputs": context.input_digests, "external": payload["external"]}
+        self._write_record(record_path, {**base, "status": "running"})
+        tick = time.perf_counter()
+        counts = stage.run(context)
+        seconds = time.perf_counter() - tick
+        outputs = {a: digests.digest(getattr(run, a))
+                   for a in stage.outputs + stage.optional_outputs}
+        entry = {**base, "status": "complete", "seconds": round(seconds, 3),
+                 "counts": counts, "outputs": outputs}
+        self._write_record(record_path, entry)
+        logger.info("stage %s done in %.1f s: %s", stage.name, seconds, counts)
+        return {**entry, "reused": False}
+
+    @staticmethod
+    def _write_record(path: Path, record: dict) -> None:
+        with atomic_write(path) as handle:
+            json.dump(record, handle, indent=1, default=str)
+
+    # ------------------------------------------------------------------------------ report
+    def _report(self, run: RunDir, bag, entries: dict[str, dict], seconds: float) -> dict:
+        stages = {}
+        for stage in self.stages:
+            entry = entries.get(stage.name) or _read_record(run.stage_record(stage.name))
+            if not entry or entry.get("status") != "complete":
+                continue
+            stages[stage.name] = {"seconds": entry["seconds"], "reused": entry.get("reused",
+                                                                                   True),
+                                  **entry["counts"], "fingerprint": entry["fingerprint"],
+                                  "options": entry["options"]}
+        report = {"version": __version__, "python": platform.python_version(),
+                  "versions": _versions(), "bag": str(bag) if bag is not None else None,
+                  "stages": stages, "summary": _summary(stages),
+                  "options": options_as_dict(self.options),
+                  "last_run_seconds": round(seconds, 3)}
+        with atomic_write(run.report) as handle:
+            json.dump(report, handle, indent=2)
+        return report
+
+
+def _summary(stages: dict) -> dict:
+    """The headline counts of a run, gathered from the stages."""
+    get = lambda stage, key: stages.get(stage, {}).get(key)  # noqa: E731
+    return {"keyframes": get("keyframes", "keyframes"), "pairs": get("pairs", "pairs"),
+            "verified_matches": get("mapping", "verified_matches"),
+            "tracks": get("mapping", "tracks"), "points": get("mapping", "points"),
+            "observations": get("mapping", "observations"),
+            "mean_reprojection_error_px": get("mapping", "mean_reprojection_error_px"),
+            "loops": get("loops", "loops"),
+            "seconds_per_stage": {k: v.get("seconds") for k, v in stages.items()}}

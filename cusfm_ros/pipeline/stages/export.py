@@ -1,0 +1,154 @@
+"""Stage ``export``: the run's user-facing results in RUN_DIR, each written atomically
+(``poses.tum`` last).
+
+- ``initial_poses.tum``: the input (odometry) ``world_from_base_link`` per keyframe rig sample;
+- ``poses.tum``: the refined ones (mapping, else pose graph);
+- ``extrinsics.yaml``: ``base_link_from_cam`` per camera (refined with --optimize-extrinsics);
+- ``sparse/``: COLMAP model (cameras, images with every keypoint, points3D with tracks and,
+  with ``rgb``, colours sampled from the keyframe images); text or binary;
+- ``points.ply``: the points (with colours when sampled).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.keyframes import KeyframeSet
+from cusfm_ros.core.mapping.map_points import MapPoints
+from cusfm_ros.core.trajectory import Trajectory
+from cusfm_ros.errors import CalibrationError, CusfmError
+from cusfm_ros.io.atomic import atomic_write
+from cusfm_ros.io.colmap import (ColmapImage, ColmapPoint3D, ColmapReconstruction,
+                                 camera_to_colmap, write_model)
+from cusfm_ros.io.colmap.cameras import COLMAP_PIXEL_OFFSET
+from cusfm_ros.io.extrinsics_yaml import Extrinsics, read_extrinsics
+from cusfm_ros.io.feature_store import FeatureStore
+from cusfm_ros.io.map_points_file import read_map_points
+from cusfm_ros.io.ply import write_ply
+from cusfm_ros.io.tum import read_tum
+from cusfm_ros.pipeline.stage import Stage, StageContext
+from cusfm_ros.pipeline.stores import load_keyframes, open_features
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    colmap_binary: bool = False
+    rgb: bool = False
+    """Colour the points from the keyframe images (one image read per keyframe)."""
+
+
+def _copy(source: Path, target: Path) -> None:
+    with atomic_write(target) as handle:
+        handle.write(source.read_text())
+
+
+def point_colours(image_path, points: MapPoints) -> np.ndarray:
+    """Mean RGB of each point over its observations (nearest pixel); ``image_path(name)``
+    gives the path of an image."""
+    total = np.zeros((len(points), 3))
+    count = np.zeros(len(points))
+    for name in np.unique(points.obs_image):
+        image = cv2.imread(str(image_path(name)), cv2.IMREAD_COLOR)
+        if image is None:
+            raise CusfmError(f"cannot read {image_path(name)} for the point colours")
+        sel = points.obs_image == name
+        px = np.rint(points.obs_uv_px[sel]).astype(int)
+        px[:, 0] = np.clip(px[:, 0], 0, image.shape[1] - 1)
+        px[:, 1] = np.clip(px[:, 1], 0, image.shape[0] - 1)
+        bgr = image[px[:, 1], px[:, 0]].astype(float)
+        np.add.at(total, points.obs_point[sel], bgr[:, ::-1])
+        np.add.at(count, points.obs_point[sel], 1)
+    return np.clip(np.rint(total / np.maximum(count, 1)[:, None]), 0, 255).astype(np.uint8)
+
+
+def colmap_model(keyframes: KeyframeSet, world_from_rig: Trajectory, extrinsics: Extrinsics,
+                 points: MapPoints, rgb: np.ndarray | None, features: FeatureStore
+                 ) -> ColmapReconstruction | None:
+    """The map as a COLMAP reconstruction (every keypoint of every image, tracks, per-point
+    mean reprojection error); None when a camera has no COLMAP model (F-theta)."""
+    sample_ids, stamps, _ = keyframes.sample_poses()
+    if len(world_from_rig) != len(sample_ids) or not np.array_equal(world_from_rig.stamps_ns,
+                                                                    stamps):
+        raise CusfmError("poses.tum does not match the keyframes; rerun mapping")
+    by_sample = dict(zip(sample_ids, world_from_rig.world_from_body))
+    model = ColmapReconstruction()
+    camera_ids = {}
+    for number, camera in enumerate(keyframes.rig, 1):
+        try:
+            model.cameras[number] = camera_to_colmap(camera.camera, number)
+        except CalibrationError as exc:
+            logger.warning("export: no COLMAP model written (%s)", exc)
+            return None
+        camera_ids[camera.name] = number
+    images = keyframes.images_in_time_order()
+    image_ids = {k.image_name: i for i, k in enumerate(images, 1)}
+    point_ids = np.arange(1, len(points) + 1)
+    for keyframe in images:
+        rig_from_cam = extrinsics.cameras[keyframe.camera_name].rig_from_cam
+        world_from_cam = Rigid3.from_matrix(by_sample[keyframe.sample_id]) * rig_from_cam
+        keypoints = features.features(keyframe.image_name).keypoints_px.astype(np.float64)
+        ids = np.full(len(keypoints), -1, np.int64)
+        sel = points.obs_image == keyframe.image_name
+        ids[points.obs_keypoint[sel]] = point_ids[points.obs_point[sel]]
+        image_id = image_ids[keyframe.image_name]
+        model.images[image_id] = ColmapImage(
+            image_id, keyframe.image_name, camera_ids[keyframe.camera_name],
+            world_from_cam.inverse(), keypoints + COLMAP_PIXEL_OFFSET, ids)
+    order = np.argsort(points.obs_point, kind="stable")
+    starts = np.searchsorted(points.obs_point[order], np.arange(len(points) + 1))
+    image_of_obs = np.array([image_ids[n] for n in points.obs_image], np.int64)
+    sums = np.bincount(points.obs_point, weights=np.nan_to_num(points.obs_error_px),
+                       minlength=len(points))
+    counts = np.bincount(points.obs_point, weights=np.isfinite(points.obs_error_px),
+                         minlength=len(points))
+    mean_error = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
+    grey = np.full(3, 128, np.uint8)
+    xyz = points.points3d_in_world
+    for p in range(len(points)):
+        members = order[starts[p]:starts[p + 1]]
+        model.points3d[int(point_ids[p])] = ColmapPoint3D(
+            int(point_ids[p]), xyz[p], rgb[p] if rgb is not None else grey,
+            float(mean_error[p]), image_of_obs[members], points.obs_keypoint[members])
+    return model
+
+
+class ExportStage(Stage):
+    name = "export"
+    sections = {"export": ExportOptions}
+    reads = ("export",)
+    inputs = ("keyframes_dir", "features", "mapping_dir")
+    outputs = ("initial_poses", "poses", "extrinsics", "points_ply")
+    optional_outputs = ("sparse",)
+
+    def run(self, context: StageContext) -> dict:
+        run, options = context.run, context.options
+        started = time.perf_counter()
+        if not run.mapping_summary.is_file():
+            raise CusfmError(f"{run.mapping_dir} is incomplete; run the mapping stage first")
+        keyframes = load_keyframes(run)
+        points = read_map_points(run.mapping_points)
+        rgb = (point_colours(run.keyframe_image, points) if options.export.rgb else None)
+        with open_features(run, options) as store:
+            model = colmap_model(keyframes, read_tum(run.mapping_poses),
+                                 read_extrinsics(run.mapping_extrinsics), points, rgb, store)
+        write_ply(run.points_ply, points.points3d_in_world, rgb)
+        if model is not None:
+            write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt")
+        _copy(run.keyframe_initial_poses, run.initial_poses)
+        _copy(run.mapping_extrinsics, run.extrinsics)
+        _copy(run.mapping_poses, run.poses)  # last: poses.tum means the export is complete
+        seconds = time.perf_counter() - started
+        counts = {"points": len(points), "observations": points.num_observations,
+                  "colmap": None if model is None else
+                  ("bin" if options.export.colmap_binary else "txt")}
+        logger.info("export: %s in %.1f s -> %s", counts, seconds, run.root)
+        return counts

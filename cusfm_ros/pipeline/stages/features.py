@@ -1,0 +1,76 @@
+"""Stage ``features``: every keyframe image -> ``features/features.h5`` (resumable per image).
+
+``extract_features(images, extractor, store)`` is the stage on explicit inputs (a localizer
+extracts its query images the same way).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cusfm_ros.errors import CusfmError
+from cusfm_ros.io.feature_store import FeatureStore
+from cusfm_ros.pipeline.components import FeatureOptions, make_extractor
+from cusfm_ros.pipeline.progress import Progress
+from cusfm_ros.pipeline.stage import Stage, StageContext
+from cusfm_ros.pipeline.stores import load_keyframes, open_features
+
+logger = logging.getLogger(__name__)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An image file as grey (H, W) or RGB (H, W, 3) uint8."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise CusfmError(f"{path}: cannot read the image (missing, or not an image format "
+                         "OpenCV reads)")
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4
+                             else cv2.COLOR_BGR2RGB)
+    return image
+
+
+def extract_features(images: Sequence[tuple[str, str | Path | np.ndarray]], extractor,
+                     store: FeatureStore, skip_existing: bool = True) -> dict:
+    """Extract ``(name, image or image path)`` into ``store``; ``extractor`` is an object or a
+    zero-argument factory (called only if there is work). Returns counts."""
+    todo = [(n, i) for n, i in images if not (skip_existing and store.has_features(n))]
+    logger.info("features: %d images, %d to extract", len(images), len(todo))
+    keypoints = 0
+    progress = Progress("features", len(todo), "images")
+    for name, image in todo:
+        if callable(extractor) and not hasattr(extractor, "extract"):
+            extractor = extractor()
+        array = read_image(image) if isinstance(image, (str, Path)) else image
+        features = extractor.extract(array)
+        store.put_features(name, features)
+        keypoints += len(features)
+        progress.step()
+    return {"images": len(images), "extracted": len(todo), "keypoints_extracted": keypoints}
+
+
+class FeaturesStage(Stage):
+    name = "features"
+    sections = {"features": FeatureOptions}
+    reads = ("features.extractor",)
+    inputs = ("keyframes_dir",)
+    outputs = ("features",)
+
+    def run(self, context: StageContext) -> dict:
+        run, options = context.run, context.options
+        keyframes = load_keyframes(run)
+        images = [(k.image_name, run.keyframe_image(k.image_name)) for k in keyframes.keyframes]
+        started = time.perf_counter()
+        with open_features(run, options, write=True, recover=context.resuming) as store:
+            counts = extract_features(images, lambda: make_extractor(options.features,
+                                                                     options.device), store)
+        logger.info("features: extracted %d images (%d keypoints) in %.1f s",
+                    counts["extracted"], counts["keypoints_extracted"],
+                    time.perf_counter() - started)
+        return counts

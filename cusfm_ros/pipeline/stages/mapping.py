@@ -1,0 +1,193 @@
+"""Stage ``mapping``: tracks from the verified matches, iterative triangulation and bundle
+adjustment, starting from the pose-graph poses (or the input odometry when the pose graph was
+skipped) -> ``mapping/`` (poses.tum, extrinsics.yaml, points.npz, summary.json), written to a
+temporary directory and renamed when complete.
+
+``map_keyframes(keyframes, keypoints, pair_matches, start, ...)`` is the stage on explicit
+inputs (map update calls it with the merged sessions and fixed samples).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from cusfm_ros.core.features.types import Matches
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.keyframes import KeyframeSet
+from cusfm_ros.core.mapping.bundle_adjustment import BundleOptions
+from cusfm_ros.core.mapping.iterative import IterativeMapper, IterativeMappingOptions
+from cusfm_ros.core.mapping.map_points import MapPoints
+from cusfm_ros.core.mapping.structure import (build_observations, build_pose_structure,
+                                              mapping_quality, pixel_errors,
+                                              refined_world_from_rig)
+from cusfm_ros.core.trajectory import Trajectory
+from cusfm_ros.errors import ConfigError, CusfmError, MappingError
+from cusfm_ros.io.atomic import atomic_directory
+from cusfm_ros.io.extrinsics_yaml import CameraExtrinsics, Extrinsics, write_extrinsics
+from cusfm_ros.io.map_points_file import write_map_points
+from cusfm_ros.io.pairs_file import read_pairs
+from cusfm_ros.io.tum import read_tum, write_tum
+from cusfm_ros.pipeline.config import options_as_dict
+from cusfm_ros.pipeline.stage import Stage, StageContext
+from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_verified
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MappingStageOptions:
+    optimize_extrinsics: bool = False
+    """Refine base_link_from_cam of every camera (rig frame type)."""
+    rolling_shutter_line_delay_s: float = 0.0
+    """> 0: per-row pose interpolation between neighbouring keyframes (row r is exposed at
+    stamp + r * delay)."""
+    use_pose_graph: bool = True
+    """Start from pose_graph/poses.tum when it exists."""
+    sequential_from: str = "input"
+    """Where the sequential relative-pose factors come from: ``input`` (the odometry) or
+    ``pose_graph`` (its result; for noisy priors mapped with visual sequential edges)."""
+    fixed_samples: tuple[str, ...] = ()
+    """Rig sample ids held at their initial pose (map update: the existing map's samples)."""
+    max_pose_change_m: float = 50.0
+    """A refined pose further than this from its start is reported as suspicious."""
+
+    def __post_init__(self) -> None:
+        if self.optimize_extrinsics and self.rolling_shutter_line_delay_s > 0:
+            raise ConfigError("extrinsic refinement with the rolling-shutter model is not "
+                              "supported; refine extrinsics on a global-shutter run")
+        if self.sequential_from not in ("input", "pose_graph"):
+            raise ConfigError(f"sequential_from must be input or pose_graph, "
+                              f"got {self.sequential_from!r}")
+        if self.rolling_shutter_line_delay_s < 0:
+            raise ConfigError("rolling_shutter_line_delay_s must be >= 0")
+        if self.max_pose_change_m <= 0:
+            raise ConfigError("max_pose_change_m must be > 0")
+
+
+@dataclass
+class MappingOutput:
+    world_from_rig: Trajectory
+    rig_from_cam: dict[str, Rigid3]
+    points: MapPoints
+    counts: dict
+    summary: dict
+
+
+def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
+                  pair_matches: list[tuple[str, str, Matches]],
+                  start_world_from_rig: np.ndarray, measured_world_from_rig: np.ndarray,
+                  options: MappingStageOptions = MappingStageOptions(),
+                  refinement: IterativeMappingOptions = IterativeMappingOptions(),
+                  bundle: BundleOptions = BundleOptions(), frame_type: str = "rig"
+                  ) -> MappingOutput:
+    """Triangulate and adjust. Poses are world_from_rig per rig sample in
+    ``keyframes.sample_poses()`` order; ``measured`` gives the sequential factors."""
+    if frame_type != "rig" and options.optimize_extrinsics:
+        raise ConfigError("--optimize-extrinsics needs --frame-type rig (extrinsics are the "
+                          "rig's)")
+    structure = build_pose_structure(keyframes, start_world_from_rig, measured_world_from_rig,
+                                     frame_type, bundle, options.fixed_samples,
+                                     options.optimize_extrinsics)
+    index = {k.image_name: i for i, k in enumerate(structure.images)}
+    observations = build_observations(
+        keyframes, structure, [keypoints_px[k.image_name] for k in structure.images],
+        [(index[a], index[b], m) for a, b, m in pair_matches],
+        options.rolling_shutter_line_delay_s)
+    counts, data = dict(observations.counts), observations.data
+    logger.info("mapping: %d tracks with %d observations over %d images", counts["tracks"],
+                counts["track_observations"], len(structure.images))
+    if counts["tracks"] < refinement.min_points:
+        raise MappingError(
+            f"too few matches to triangulate: {counts['tracks']} tracks from "
+            f"{counts['verified_matches']} verified matches over {counts['pairs']} pairs "
+            f"(need {refinement.min_points}); check the images overlap and the "
+            "matcher settings")
+    result = IterativeMapper(refinement, bundle).solve(data)
+    world_from_rig = refined_world_from_rig(structure, result, keyframes)
+    rig_from_cam = {c.name: c.rig_from_cam for c in keyframes.rig}
+    if options.optimize_extrinsics:
+        names = keyframes.rig.names
+        rig_from_cam = {names[s]: Rigid3.from_matrix(result.node_from_sensor[s])
+                        for s in range(len(names))}
+    quality = mapping_quality(structure, world_from_rig, result, options.max_pose_change_m)
+    reprojection, per_observation = pixel_errors(keyframes, structure, observations, result)
+    valid = np.isfinite(result.points[:, 0])
+    track_of_obs = np.repeat(np.arange(len(data.offsets) - 1), np.diff(data.offsets))
+    point_id = np.cumsum(valid) - 1
+    obs = result.inliers
+    points = MapPoints(result.points[valid], point_id[track_of_obs[obs]],
+                       np.array([structure.images[i].image_name for i in data.obs_image[obs]]),
+                       observations.obs_keypoint[obs], observations.obs_uv_px[obs],
+                       per_observation)
+    counts.update({"points": len(points), "observations": points.num_observations,
+                   "mean_reprojection_error_px": reprojection["mean"],
+                   "rounds": len(result.rounds)})
+    summary = {"counts": counts, "quality": quality, "reprojection_px": reprojection,
+               "rounds": result.rounds,
+               "view_graph_component_sizes": observations.component_sizes}
+    return MappingOutput(Trajectory(structure.sample_stamps_ns, world_from_rig), rig_from_cam,
+                         points, {**counts, **quality}, summary)
+
+
+class MappingStage(Stage):
+    name = "mapping"
+    sections = {"mapping": MappingStageOptions, "refinement": IterativeMappingOptions,
+                "bundle_adjustment": BundleOptions}
+    reads = ("mapping", "refinement", "bundle_adjustment", "frame_type")
+    inputs = ("keyframes", "pairs", "features", "verified_matches")
+    optional_inputs = ("pose_graph_poses",)
+    outputs = ("mapping_dir",)
+
+    def run(self, context: StageContext) -> dict:
+        run, options = context.run, context.options
+        o = options.mapping
+        started = time.perf_counter()
+        keyframes = load_keyframes(run)
+        _, sample_stamps, input_poses = keyframes.sample_poses()
+        start, source = input_poses, "input odometry"
+        if o.use_pose_graph and run.pose_graph_poses.is_file():
+            refined = read_tum(run.pose_graph_poses)
+            if not np.array_equal(refined.stamps_ns, sample_stamps):
+                raise CusfmError(f"{run.pose_graph_poses} does not match the keyframes (rerun "
+                                 "the pose_graph stage with --overwrite)")
+            start, source = refined.world_from_body, "pose graph"
+        if o.sequential_from == "pose_graph" and source != "pose graph":
+            raise CusfmError("mapping.sequential_from is pose_graph but there is no "
+                             "pose_graph/poses.tum; run the pose_graph stage")
+        measured = start if o.sequential_from == "pose_graph" else input_poses
+        logger.info("mapping: starting from the %s poses of %d rig samples", source,
+                    len(sample_stamps))
+        pairs = read_pairs(run.pairs)
+        with open_features(run, options) as store:
+            keypoints = {k.image_name: store.features(k.image_name).keypoints_px
+                         for k in keyframes.keyframes}
+        with open_verified(run, options) as verified:
+            missing = [p for p in pairs if not verified.has_matches(*p)]
+            if missing:
+                raise CusfmError(f"{len(missing)} pairs have no verified matches yet (e.g. "
+                                 f"{missing[0][0]} - {missing[0][1]}); run the matching stage")
+            pair_matches = [(a, b, verified.matches(a, b)) for a, b in pairs]
+        output = map_keyframes(keyframes, keypoints, pair_matches, start, measured, o,
+                               options.refinement, options.bundle_adjustment,
+                               options.frame_type)
+        summary = {**output.summary, "start_poses": source,
+                   "options": options_as_dict(o), "frame_type": options.frame_type,
+                   "refinement": options_as_dict(options.refinement),
+                   "bundle": options_as_dict(options.bundle_adjustment)}
+        with atomic_directory(run.mapping_dir) as tmp:
+            write_tum(tmp / run.mapping_poses.name, output.world_from_rig)
+            write_extrinsics(tmp / run.mapping_extrinsics.name, Extrinsics(
+                keyframes.rig.base_frame_id,
+                {c.name: CameraExtrinsics(c.frame_id, output.rig_from_cam[c.name])
+                 for c in keyframes.rig}))
+            write_map_points(tmp / run.mapping_points.name, output.points)
+            (tmp / run.mapping_summary.name).write_text(json.dumps(summary, indent=2))
+        logger.info("mapping: %d points, %d observations, reprojection %.3f px, in %.1f s",
+                    output.counts["points"], output.counts["observations"],
+                    output.counts["mean_reprojection_error_px"], time.perf_counter() - started)
+        return output.counts

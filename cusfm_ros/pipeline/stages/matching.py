@@ -1,0 +1,98 @@
+"""Stage ``matching``: match every pair of ``pairs/pairs.txt`` and keep the matches that agree
+with one essential matrix -> ``matching/matches.h5`` (resumable per pair).
+
+Raw matches already computed (loops, pose graph) come from the run's raw-match cache.
+``match_pairs(pairs, cameras, features, matcher, options, seed, verified)`` is the stage on
+explicit inputs (a localizer matches its query against map keyframes the same way).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+from cusfm_ros.core.cameras import CameraBase
+from cusfm_ros.core.features.types import Matches
+from cusfm_ros.core.relpose.two_view import essential_inliers
+from cusfm_ros.errors import ConfigError, CusfmError
+from cusfm_ros.io.feature_store import FeatureStore
+from cusfm_ros.io.pairs_file import read_pairs
+from cusfm_ros.pipeline.components import LazyMatcher
+from cusfm_ros.pipeline.progress import Progress
+from cusfm_ros.pipeline.stage import Stage, StageContext
+from cusfm_ros.pipeline.stages.loops import cached_match
+from cusfm_ros.pipeline.stores import (load_keyframes, open_features, open_raw_matches,
+                                       open_verified)
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MatchingOptions:
+    verify: bool = True
+    """Keep only matches consistent with an essential matrix (USAC MAGSAC)."""
+    ransac_threshold_px: float = 1.5
+    min_inliers: int = 15
+    """Pairs with fewer verified matches contribute none."""
+
+    def __post_init__(self) -> None:
+        if self.ransac_threshold_px <= 0 or self.min_inliers < 8:
+            raise ConfigError("matching: ransac_threshold_px > 0 and min_inliers >= 8")
+
+
+def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
+                features: FeatureStore, matcher, options: MatchingOptions, seed: int,
+                verified: FeatureStore, cache: FeatureStore | None = None) -> dict:
+    """Match and verify ``pairs`` (image names; ``cameras`` maps each image to its camera)
+    into ``verified``; pairs already there are kept. Returns counts."""
+    unknown = [name for pair in pairs for name in pair if name not in cameras]
+    if unknown:
+        raise CusfmError(f"the pair list names images without a camera ({unknown[0]}); "
+                         "rerun the pairs stage")
+    raw_total = kept_total = rejected = matched = 0
+    todo = [p for p in pairs if not verified.has_matches(*p)]
+    logger.info("matching: %d pairs, %d to match", len(pairs), len(todo))
+    progress = Progress("matching", len(todo), "pairs")
+    for a, b in todo:
+        features_a, features_b = features.features(a), features.features(b)  # read once
+        raw, computed = cached_match(cache, matcher, a, b, features_a, features_b)
+        matched += computed
+        kept = raw
+        if options.verify and len(raw):
+            mask = essential_inliers(features_a.keypoints_px[raw.indices[:, 0]],
+                                     features_b.keypoints_px[raw.indices[:, 1]],
+                                     cameras[a], cameras[b], options.ransac_threshold_px, seed)
+            kept = Matches(raw.indices[mask], raw.confidences[mask])
+        if len(kept) < options.min_inliers:
+            kept, rejected = Matches.empty(), rejected + 1
+        verified.put_matches(a, b, kept)
+        raw_total += len(raw)
+        kept_total += len(kept)
+        progress.step(note=f"{kept_total} verified matches")
+    return {"pairs": len(pairs), "matched_now": len(todo), "matcher_runs": matched,
+            "raw_matches": raw_total, "verified_matches": kept_total,
+            "pairs_without_matches": rejected}
+
+
+class MatchingStage(Stage):
+    name = "matching"
+    sections = {"matching": MatchingOptions}
+    reads = ("matching", "features.matcher", "seed")
+    inputs = ("keyframes", "pairs", "features")
+    outputs = ("verified_matches",)
+
+    def run(self, context: StageContext) -> dict:
+        run, options = context.run, context.options
+        started = time.perf_counter()
+        keyframes = load_keyframes(run)
+        cameras = {k.image_name: keyframes.rig[k.camera_name].camera
+                   for k in keyframes.keyframes}
+        with open_features(run, options) as store, \
+                open_raw_matches(run, options, context.input_digests["features"]) as cache, \
+                open_verified(run, options, write=True, recover=context.resuming) as verified:
+            counts = match_pairs(read_pairs(run.pairs), cameras, store,
+                                 LazyMatcher(options.features, options.device),
+                                 options.matching, options.seed, verified, cache)
+        logger.info("matching: %s in %.1f s", counts, time.perf_counter() - started)
+        return counts

@@ -1,0 +1,207 @@
+"""Stage ``pose_graph``: one node per rig sample (or per image) at its initial pose,
+sequential odometry factors, one robust loop factor per verified loop — metric from the stereo
+relative pose when the query camera has a stereo partner, else the two-view rotation and
+direction with the prior's distance as scale — gtsam LM -> ``pose_graph/poses.tum``
+(world_from_base_link per rig sample) and ``summary.json``.
+
+``optimize_pose_graph(keyframes, loops, features, matcher, options, frame_type, seed)`` is
+the stage on explicit inputs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from cusfm_ros.core.features.types import Features
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.graph.pose_graph import LoopConstraint, PoseGraphOptimizer, PoseGraphOptions
+from cusfm_ros.core.keyframes import KeyframeSet
+from cusfm_ros.core.relpose.loop_measurement import LoopView, measure_loop
+from cusfm_ros.core.retrieval.loops import LoopRecord
+from cusfm_ros.core.trajectory import Trajectory
+from cusfm_ros.errors import GeometryError
+from cusfm_ros.io.atomic import atomic_write
+from cusfm_ros.io.feature_store import FeatureStore
+from cusfm_ros.io.loops_file import read_loops
+from cusfm_ros.io.tum import write_tum
+from cusfm_ros.pipeline.components import LazyMatcher
+from cusfm_ros.pipeline.config import options_as_dict
+from cusfm_ros.pipeline.stage import Stage, StageContext
+from cusfm_ros.pipeline.stages.loops import cached_match
+from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class _Edge:
+    query_image: str
+    match_image: str
+    kind: str
+    """``loop`` (robust) or ``sequential`` (visual sequential edge, not robust)."""
+    two_view: Rigid3 | None = None
+
+
+@dataclass
+class PoseGraphOutput:
+    world_from_rig: Trajectory
+    summary: dict
+
+
+def _sequential_edges(keyframes: KeyframeSet) -> list[_Edge]:
+    """Consecutive keyframes of each stereo camera (one of each pair)."""
+    rig = keyframes.rig
+    chosen = [name for name in rig.names
+              if (partner := rig.stereo_partner(name)) is not None and name < partner]
+    if not chosen:
+        logger.warning("pose_graph: visual_sequential needs stereo pairs; this rig has "
+                       "none, so only odometry joins consecutive samples")
+    edges = []
+    for name in chosen:
+        frames = [k for k in keyframes.images_in_time_order() if k.camera_name == name]
+        edges += [_Edge(b.image_name, a.image_name, "sequential") for a, b in zip(frames,
+                                                                                  frames[1:])]
+    return edges
+
+
+class _Graph:
+    """Nodes, chains and rigid edges of the pose graph for one frame type."""
+
+    def __init__(self, keyframes: KeyframeSet, frame_type: str) -> None:
+        order, self.stamps, rig_poses = keyframes.sample_poses()
+        samples = keyframes.samples()
+        rig = keyframes.rig
+        if frame_type == "rig":
+            position = {sample: i for i, sample in enumerate(order)}
+            self.node_of = {k.image_name: position[k.sample_id] for k in keyframes.keyframes}
+            self.initial, self.chains, self.rigid = rig_poses, None, []
+            self.readout = [(i, np.eye(4)) for i in range(len(order))]
+            return
+        # one node per image, tied to the others of its sample by the extrinsics
+        images = keyframes.images_in_time_order()
+        self.node_of = {k.image_name: i for i, k in enumerate(images)}
+        self.initial = np.stack([k.world_from_cam.matrix() for k in images])
+        chains = [[self.node_of[k.image_name] for k in images if k.camera_name == c]
+                  for c in rig.names]
+        self.chains = [c for c in chains if len(c) > 1]
+        self.rigid, self.readout = [], []
+        for sample in order:
+            first, *others = samples[sample]
+            base = rig[first.camera_name].rig_from_cam
+            for other in others:
+                relative = base.inverse() * rig[other.camera_name].rig_from_cam
+                self.rigid.append(LoopConstraint(self.node_of[first.image_name],
+                                                 self.node_of[other.image_name],
+                                                 relative.matrix()))
+            self.readout.append((self.node_of[first.image_name], base.inverse().matrix()))
+
+
+def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
+                        features: dict[str, Features], matcher,
+                        options: PoseGraphOptions = PoseGraphOptions(), frame_type: str = "rig",
+                        seed: int = 0, cache: FeatureStore | None = None,
+                        extra: list[LoopConstraint] = ()) -> PoseGraphOutput:
+    """Refined world_from_rig per rig sample. ``extra`` constraints join the measured ones
+    (benchmarks inject false loops)."""
+    rig = keyframes.rig
+    graph = _Graph(keyframes, frame_type)
+    images = {k.image_name: k for k in keyframes.keyframes}
+    samples = keyframes.samples()
+    edges = [_Edge(x.query_image, x.match_image, "loop", x.match_cam_from_query_cam)
+             for x in loops]
+    if options.visual_sequential:
+        edges += _sequential_edges(keyframes)
+    constraints, kinds, skipped = [], {}, []
+    for edge in edges:
+        query, match = images[edge.query_image], images[edge.match_image]
+        if query.sample_id == match.sample_id:
+            continue
+        try:
+            matches_qm, _ = cached_match(cache, matcher, query.image_name, match.image_name,
+                                         features[query.image_name], features[match.image_name])
+            partner_name = rig.stereo_partner(query.camera_name)
+            partner = next((k for k in samples[query.sample_id]
+                            if k.camera_name == partner_name), None) if partner_name else None
+            matches_pm = None
+            if partner is not None:
+                matches_pm, _ = cached_match(cache, matcher, partner.image_name,
+                                             match.image_name, features[partner.image_name],
+                                             features[match.image_name])
+            prior = keyframes.world_from_rig(match).inverse() * keyframes.world_from_rig(query)
+            measured = measure_loop(
+                rig, LoopView(query.camera_name, features[query.image_name].keypoints_px),
+                LoopView(match.camera_name, features[match.image_name].keypoints_px),
+                matches_qm.indices,
+                LoopView(partner.camera_name, features[partner.image_name].keypoints_px)
+                if partner is not None else None,
+                matches_pm.indices if matches_pm is not None else None,
+                edge.two_view, prior, seed)
+        except GeometryError as exc:
+            skipped.append(f"{edge.query_image} - {edge.match_image}: {exc}")
+            continue
+        relative = measured.rig_match_from_rig_query
+        if frame_type == "camera":  # rig relation -> camera relation
+            relative = (rig[match.camera_name].rig_from_cam.inverse() * relative
+                        * rig[query.camera_name].rig_from_cam)
+        constraints.append(LoopConstraint(graph.node_of[match.image_name],
+                                          graph.node_of[query.image_name], relative.matrix(),
+                                          robust=edge.kind != "sequential"))
+        how = f"{edge.kind} {measured.how}"
+        kinds[how] = kinds.get(how, 0) + 1
+    for reason in skipped[:5]:
+        logger.warning("pose_graph: loop skipped (%s)", reason)
+    constraints = constraints + list(extra)
+    result = PoseGraphOptimizer(options).solve(graph.initial, constraints, graph.chains,
+                                               graph.rigid)
+    world_from_rig = np.stack([result.world_from_rig[node] @ node_from_rig
+                               for node, node_from_rig in graph.readout])
+    summary = {"frame_type": frame_type, "nodes": len(graph.initial),
+               "rig_samples": len(graph.stamps), "extrinsic_edges": len(graph.rigid),
+               "loop_edges": len(constraints), "loop_edges_by_measurement": kinds,
+               "loops_skipped": len(skipped),
+               "loops_downweighted": int(np.sum(result.loop_residuals_after > 3.0)),
+               "error_before": result.error_before, "error_after": result.error_after,
+               "iterations": result.iterations, "options": options_as_dict(options)}
+    logger.info("pose_graph: %d nodes, %d loop edges (%s), error %.3g -> %.3g",
+                len(graph.initial), len(constraints), kinds, result.error_before,
+                result.error_after)
+    return PoseGraphOutput(Trajectory(graph.stamps, world_from_rig), summary)
+
+
+class PoseGraphStage(Stage):
+    name = "pose_graph"
+    sections = {"pose_graph": PoseGraphOptions}
+    reads = ("pose_graph", "frame_type", "features.matcher", "seed")
+    inputs = ("keyframes", "features")
+    optional_inputs = ("loops",)
+    outputs = ("pose_graph_poses", "pose_graph_summary")
+
+    def run(self, context: StageContext, extra: list[LoopConstraint] = ()) -> dict:
+        run, options = context.run, context.options
+        started = time.perf_counter()
+        keyframes = load_keyframes(run)
+        if run.loops.is_file():
+            loops = read_loops(run.loops)
+        else:
+            loops = []
+            logger.warning("pose_graph: no %s (loops stage skipped?): odometry only",
+                           run.loops)
+        with open_features(run, options) as store, \
+                open_raw_matches(run, options, context.input_digests["features"]) as cache:
+            features = {k.image_name: store.features(k.image_name) for k in keyframes.keyframes}
+            output = optimize_pose_graph(keyframes, loops, features,
+                                         LazyMatcher(options.features, options.device),
+                                         options.pose_graph, options.frame_type, options.seed,
+                                         cache, extra)
+        write_tum(run.pose_graph_poses, output.world_from_rig)
+        with atomic_write(run.pose_graph_summary) as handle:
+            json.dump(output.summary, handle, indent=2)
+        logger.info("pose_graph: done in %.1f s", time.perf_counter() - started)
+        return {k: output.summary[k] for k in ("nodes", "loop_edges", "loops_skipped",
+                                               "loops_downweighted", "error_before",
+                                               "error_after")}

@@ -1,0 +1,90 @@
+"""Stage ``vocabulary``: the run's own descriptors -> ``vocabulary/vocabulary.npz``
+(hierarchical k-means, or BIRCH, which also keeps ``birch_state.npz`` for
+``cusfm vocab extend``).
+
+``build_vocabulary(documents, options, seed)`` is the stage on explicit inputs.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from cusfm_ros.core.retrieval.birch import BirchOptions, BirchVocabularyBuilder
+from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions, VocabularyTree
+from cusfm_ros.errors import ConfigError, CusfmError
+from cusfm_ros.io.vocabulary_file import save_birch, save_vocabulary
+from cusfm_ros.pipeline.stage import Stage, StageContext
+from cusfm_ros.pipeline.stores import open_features
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class VocabularyStageOptions:
+    method: str = "kmeans"
+    """``kmeans`` (hierarchical k-means) or ``birch`` (incremental CF tree + refinement)."""
+    branching: int = 10
+    depth: int = 4
+    max_descriptors: int = 300000
+    """Descriptors sampled (seeded) from the run to train the tree."""
+    birch_threshold: float = 0.35
+    workers: int = 0
+
+    def __post_init__(self) -> None:
+        if self.method not in ("kmeans", "birch"):
+            raise ConfigError(f"vocabulary method must be kmeans or birch, got {self.method!r}")
+        if self.branching < 2 or self.depth < 1 or self.max_descriptors < 1:
+            raise ConfigError("vocabulary: branching >= 2, depth >= 1, max_descriptors >= 1")
+        if self.birch_threshold <= 0:
+            raise ConfigError("vocabulary: birch_threshold must be > 0")
+
+
+def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOptions,
+                     seed: int = 0) -> tuple[VocabularyTree, BirchVocabularyBuilder | None]:
+    """A vocabulary over per-image descriptor arrays (and the BIRCH builder for ``birch``)."""
+    total = sum(len(d) for d in documents)
+    if not total:
+        raise CusfmError("no descriptors to build a vocabulary from; run the features stage")
+    rng = np.random.default_rng(seed)
+    stacked = np.concatenate(documents)
+    if len(stacked) > options.max_descriptors:
+        stacked = stacked[rng.choice(len(stacked), options.max_descriptors, replace=False)]
+    vocab_options = VocabularyOptions(options.branching, options.depth, seed=seed,
+                                      workers=options.workers)
+    logger.info("vocabulary: %s over %d of %d descriptors from %d images (K=%d, L=%d)",
+                options.method, len(stacked), total, len(documents), options.branching,
+                options.depth)
+    if options.method == "kmeans":
+        return VocabularyTree.build(stacked, vocab_options, documents=documents), None
+    builder = BirchVocabularyBuilder(BirchOptions(threshold=options.birch_threshold),
+                                     vocab_options)
+    for document in documents:  # streamed: memory follows the CF entries
+        builder.insert(document)
+    return builder.solve(documents), builder
+
+
+class VocabularyStage(Stage):
+    name = "vocabulary"
+    sections = {"vocabulary": VocabularyStageOptions}
+    reads = ("vocabulary", "seed")
+    inputs = ("features",)
+    outputs = ("vocabulary",)
+    optional_outputs = ("birch_state",)
+
+    def run(self, context: StageContext) -> dict:
+        run, options = context.run, context.options
+        started = time.perf_counter()
+        with open_features(run, options) as store:
+            documents = [store.features(name).descriptors for name in store.feature_names()]
+        tree, builder = build_vocabulary(documents, options.vocabulary, options.seed)
+        if builder is not None:
+            save_birch(run.birch_state, builder)
+        save_vocabulary(run.vocabulary, tree)
+        logger.info("vocabulary: %d words in %.1f s -> %s", tree.num_words,
+                    time.perf_counter() - started, run.vocabulary)
+        return {"words": tree.num_words, "descriptors": int(min(
+            sum(len(d) for d in documents), options.vocabulary.max_descriptors))}
