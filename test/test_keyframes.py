@@ -11,7 +11,7 @@ from cusfm_ros.core.geometry import interpolate_poses
 from cusfm_ros.errors import BagError
 from cusfm_ros.io.frames_meta import read_frames_meta
 from cusfm_ros.io.tum import read_tum
-from cusfm_ros.pipeline.keyframes import KeyframeOptions, KeyframeStage
+from cusfm_ros.pipeline.stages.keyframes import KeyframeOptions, extract_keyframes
 
 ALL = KeyframeOptions(min_translation_m=0.0, min_rotation_deg=0.0)
 
@@ -20,7 +20,7 @@ ALL = KeyframeOptions(min_translation_m=0.0, min_rotation_deg=0.0)
 @pytest.mark.parametrize("compressed", [False, True])
 def test_poses_images_and_calibration_come_through(tmp_path, storage, compressed):
     truth = write_bag(tmp_path / "bag", storage=storage, compressed=compressed)
-    result = KeyframeStage(ALL).solve(tmp_path / "bag", tmp_path / "run")
+    result = extract_keyframes(tmp_path / "bag", tmp_path / "run" / "keyframes", ALL)
     kfs = result.keyframe_set
     assert result.num_samples == 6 and len(kfs.keyframes) == 12
     assert kfs.rig.names == ["front_stereo_left", "front_stereo_right"]
@@ -45,7 +45,7 @@ def test_bare_mcap_file_and_tf_pose_source(tmp_path):
     truth = write_bag(tmp_path / "bag", odom=False, tf=True)
     mcap_file = next((tmp_path / "bag").glob("*.mcap"))
     options = KeyframeOptions(min_translation_m=0.0, min_rotation_deg=0.0)
-    result = KeyframeStage(options).solve(mcap_file, tmp_path / "run")
+    result = extract_keyframes(mcap_file, tmp_path / "run" / "keyframes", options)
     initial = read_tum(result.directory / "initial_poses.tum")
     expected = interpolate_poses(truth["odom_stamps"], truth["poses"], initial.stamps_ns)
     np.testing.assert_allclose(initial.world_from_body, expected, atol=1e-12)
@@ -56,7 +56,7 @@ def test_bare_mcap_file_and_tf_pose_source(tmp_path):
 def test_keyframe_selection_thresholds(tmp_path):
     write_bag(tmp_path / "bag", frames=11)  # 0.6 m per frame
     options = KeyframeOptions(min_translation_m=1.0, min_rotation_deg=90.0)
-    result = KeyframeStage(options).solve(tmp_path / "bag", tmp_path / "run")
+    result = extract_keyframes(tmp_path / "bag", tmp_path / "run" / "keyframes", options)
     assert result.num_samples == 11 and result.num_keyframe_samples == 6  # every second frame
     poses = read_tum(result.directory / "initial_poses.tum").positions_m
     assert np.all(np.linalg.norm(np.diff(poses, axis=0), axis=1) >= 1.0)
@@ -64,7 +64,7 @@ def test_keyframe_selection_thresholds(tmp_path):
 
 def test_cameras_with_small_offsets_are_grouped(tmp_path):
     write_bag(tmp_path / "bag", camera_offset_ns=2_000_000)  # right camera 2 ms late
-    result = KeyframeStage(ALL).solve(tmp_path / "bag", tmp_path / "run")
+    result = extract_keyframes(tmp_path / "bag", tmp_path / "run" / "keyframes", ALL)
     # the last sample's right image is 2 ms after the last odometry: that sample is skipped
     assert result.num_samples == 5
     samples = result.keyframe_set.samples()
@@ -77,17 +77,36 @@ def test_cameras_with_small_offsets_are_grouped(tmp_path):
         expected = base @ result.keyframe_set.rig[keyframe.camera_name].rig_from_cam.matrix()
         np.testing.assert_allclose(keyframe.world_from_cam.matrix(), expected, atol=1e-9)
     tight = KeyframeOptions(min_translation_m=0.0, min_rotation_deg=0.0, sync_tolerance_ms=1.0)
-    assert KeyframeStage(tight).solve(tmp_path / "bag", tmp_path / "run2").num_samples == 11
+    again = extract_keyframes(tmp_path / "bag", tmp_path / "run2" / "keyframes", tight)
+    assert again.num_samples == 11
 
 
 def test_resume_and_overwrite(tmp_path):
+    """Through the runner: same bag and options -> reused; --overwrite or other options ->
+    redone; a copied bag keeps its identity, another bag does not."""
+    import shutil
+
+    from cusfm_ros.pipeline.mapper import Mapper
+    from cusfm_ros.pipeline.options import resolve_options
+
     write_bag(tmp_path / "bag")
-    first = KeyframeStage(ALL).solve(tmp_path / "bag", tmp_path / "run")
-    assert not first.reused
-    assert KeyframeStage(ALL).solve(tmp_path / "bag", tmp_path / "run").reused
-    assert not KeyframeStage(ALL).solve(tmp_path / "bag", tmp_path / "run", overwrite=True).reused
-    other = KeyframeOptions(min_translation_m=0.1)
-    assert not KeyframeStage(other).solve(tmp_path / "bag", tmp_path / "run").reused
+    options = resolve_options(None, {"keyframes.min_translation_m": 0.0,
+                                     "keyframes.min_rotation_deg": 0.0})
+
+    def reused(bag="bag", opts=options, overwrite=False):
+        report = Mapper(opts).solve(tmp_path / bag, tmp_path / "run", ["keyframes"], overwrite)
+        return report["stages"]["keyframes"]["reused"]
+
+    assert not reused()
+    assert reused()
+    assert not reused(overwrite=True)
+    other = resolve_options(None, {"keyframes.min_translation_m": 0.1})
+    assert not reused(opts=other)
+    assert not reused()
+    shutil.copytree(tmp_path / "bag", tmp_path / "copy")
+    assert reused("copy")
+    write_bag(tmp_path / "longer", frames=12)
+    assert not reused("longer")
 
 
 def _fails(tmp_path, capsys, args, message):
@@ -135,12 +154,12 @@ def test_truncated_and_unknown_bags(tmp_path, capsys):
     _fails(tmp_path, capsys, [], "truncated")
     (tmp_path / "notes.txt").write_text("hello")
     with pytest.raises(BagError, match="unknown bag storage '.txt'"):
-        KeyframeStage().solve(tmp_path / "notes.txt", tmp_path / "run")
+        extract_keyframes(tmp_path / "notes.txt", tmp_path / "run" / "keyframes")
     with pytest.raises(BagError, match="no such bag"):
-        KeyframeStage().solve(tmp_path / "missing", tmp_path / "run")
+        extract_keyframes(tmp_path / "missing", tmp_path / "run" / "keyframes")
     (tmp_path / "empty_dir").mkdir()
     with pytest.raises(BagError, match="no metadata.yaml"):
-        KeyframeStage().solve(tmp_path / "empty_dir", tmp_path / "run")
+        extract_keyframes(tmp_path / "empty_dir", tmp_path / "run" / "keyframes")
 
 
 def test_extrinsics_file_overrides_tf_static(tmp_path):
@@ -151,7 +170,8 @@ def test_extrinsics_file_overrides_tf_static(tmp_path):
         [0, 0, 0.01], [0.02, 0, 0])) for c in truth["rig"].cameras}
     write_extrinsics(tmp_path / "extrinsics.yaml", Extrinsics("base_link", shifted))
     options = KeyframeOptions(extrinsics_file=str(tmp_path / "extrinsics.yaml"))
-    kfs = KeyframeStage(options).solve(tmp_path / "bag", tmp_path / "run").keyframe_set
+    kfs = extract_keyframes(tmp_path / "bag", tmp_path / "run" / "keyframes",
+                            options).keyframe_set
     for camera in kfs.rig.cameras:
         assert camera.rig_from_cam.is_close(shifted[camera.name].rig_from_cam, 1e-12, 1e-12)
 
@@ -211,7 +231,7 @@ def test_ros1_bag(tmp_path):
                 header(stamp, camera.frame_id), 48, 64, "plumb_bob", np.zeros(5), k,
                 np.eye(3).ravel(), np.hstack([CAMERA.K, np.zeros((3, 1))]).ravel(), 0, 0,
                 T["sensor_msgs/msg/RegionOfInterest"](0, 0, 0, 0, False)))
-    result = KeyframeStage(ALL).solve(tmp_path / "data.bag", tmp_path / "run")
+    result = extract_keyframes(tmp_path / "data.bag", tmp_path / "run" / "keyframes", ALL)
     initial = read_tum(result.directory / "initial_poses.tum")
     np.testing.assert_allclose(initial.world_from_body, poses, atol=1e-12)
     assert result.keyframe_set.rig["front"].camera == CAMERA

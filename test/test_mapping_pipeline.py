@@ -42,8 +42,12 @@ def test_rolling_shutter_model_beats_the_global_shutter_model(rolling_shutter_ba
     odometry = absolute_trajectory_error(truth, read_tum(run / "initial_poses.tum"))
     assert rolling.rmse < 0.5 * global_shutter.rmse, (global_shutter.rmse, rolling.rmse)
     assert rolling.rmse < 0.5 * odometry.rmse and rolling_px < global_px
-    options = json.loads((run / "report.json").read_text())["options"]["mapping"]
-    assert options["rolling_shutter_line_delay_s"] == LINE_DELAY_S
+    report = json.loads((run / "report.json").read_text())
+    assert report["options"]["mapping"]["rolling_shutter_line_delay_s"] == LINE_DELAY_S
+    # each stage records its own options: mapping today's, matching those it ran with
+    assert report["stages"]["mapping"]["options"]["mapping"][
+        "rolling_shutter_line_delay_s"] == LINE_DELAY_S
+    assert report["stages"]["matching"]["reused"] and not report["stages"]["mapping"]["reused"]
 
 
 def test_stage_order_and_option_errors_are_named(rolling_shutter_bag, tmp_path, capsys):
@@ -126,5 +130,5 @@ def test_mapper_node_runs_the_pipeline_and_publishes_map_info(rolling_shutter_ba
     assert "parameters 'bag' and 'out' are required" in ros.logs[-1][1]
     options = mapper_node.mapper_options_from_parameters(
         {"frame_type": "camera", "rgb": True, "rolling_shutter_line_delay_s": 1e-5})
-    assert options.mapping.frame_type == "camera" and options.pose_graph.frame_type == "camera"
+    assert options.frame_type == "camera"
     assert options.export.rgb and options.mapping.rolling_shutter_line_delay_s == 1e-5

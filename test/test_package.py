@@ -83,15 +83,14 @@ def test_cusfm_help_and_version():
 
 @pytest.mark.parametrize("preset", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)
 def test_config_presets_load_into_options(preset):
-    from cusfm_ros.pipeline.mapper import MapperOptions
-    from cusfm_ros.pipeline.options import load_config
-    options = MapperOptions.from_dict(load_config(preset), str(preset))
+    from cusfm_ros.pipeline.options import resolve_options
+    options = resolve_options(preset)
     assert options.keyframes.min_translation_m > 0
 
 
 def test_unknown_option_keys_are_rejected(tmp_path):
     from cusfm_ros.errors import ConfigError
-    from cusfm_ros.pipeline.keyframes import KeyframeOptions
-    from cusfm_ros.pipeline.options import options_from_dict
+    from cusfm_ros.pipeline.config import options_from_dict
+    from cusfm_ros.pipeline.stages.keyframes import KeyframeOptions
     with pytest.raises(ConfigError, match=r"x.yaml: unknown option\(s\) \['min_translation'\]"):
         options_from_dict(KeyframeOptions, {"min_translation": 1.0}, "x.yaml")

@@ -13,7 +13,7 @@ from cusfm_ros.io.bags import messages as m
 from cusfm_ros.io.bags.reader import BagReader
 from cusfm_ros.io.extrinsics_yaml import read_extrinsics
 from cusfm_ros.io.tum import read_tum
-from cusfm_ros.pipeline.keyframes import KeyframeOptions, KeyframeStage
+from cusfm_ros.pipeline.stages.keyframes import KeyframeOptions, extract_keyframes
 from cusfm_ros.sim.generator import SimulationOptions, Simulator
 
 TINY = dict(frames=5, image_width=64, image_height=48, workers=1)
@@ -43,7 +43,7 @@ def test_generated_bags_read_back(tmp_path, storage, compressed, model, scene):
     out = simulator.generate(tmp_path / "sim")
     bag_file = next((out / "bag").glob("*.mcap" if storage == "mcap" else "*.db3"))
     assert bag_file.name == f"bag.{'mcap' if storage == 'mcap' else 'db3'}"
-    result = KeyframeStage(ALL).solve(out / "bag", tmp_path / "run")
+    result = extract_keyframes(out / "bag", tmp_path / "run" / "keyframes", ALL)
     kfs = result.keyframe_set
     assert len(kfs.keyframes) == 2 * options.frames
     assert all(c.camera.model_name == {"pinhole": "PINHOLE", "opencv": "OPENCV",

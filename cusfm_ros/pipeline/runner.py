@@ -118,9 +118,9 @@ class StageRunner:
         for artifact in stage.inputs:
             if not getattr(run, artifact).exists():
                 producer = self.producer.get(artifact, "?")
-                raise CusfmError(f"{getattr(run, artifact)} is missing: the {stage.name} stage "
-                                 f"needs the output of the {producer} stage (run it first, "
-                                 f"e.g. --steps {producer} {stage.name})")
+                raise CusfmError(f"{getattr(run, artifact)} is missing: run the {producer} "
+                                 f"stage first (the {stage.name} stage reads it; e.g. "
+                                 f"--steps {producer} {stage.name})")
         context = StageContext(run, self.options, Path(bag) if bag is not None else None)
         context.input_digests = {a: digests.digest(getattr(run, a))
                                  for a in stage.inputs + stage.optional_inputs}

@@ -146,7 +146,8 @@ class KeyframeExtractor:
                 result = KeyframeResult(out, keyframe_set, scan["num_images"], len(samples),
                                         int(len(chosen)), seconds, pose_source)
                 (tmp / "stage.json").write_text(json.dumps(
-                    {"bag": str(bag_path), "counts": result.counts()}, indent=2))
+                    {"bag": str(bag_path), "pose_source": pose_source,
+                     "counts": result.counts()}, indent=2))
         logger.info("keyframes: wrote %d keyframes of %d cameras to %s in %.1f s",
                     len(keyframe_set.keyframes), len(rig), out, seconds)
         return result
