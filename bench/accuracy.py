@@ -21,21 +21,18 @@ import argparse
 import json
 import logging
 import shutil
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from cusfm_ros.core.evaluation import absolute_trajectory_error
 from cusfm_ros.core.geometry import Rigid3
-from cusfm_ros.core.graph.pairs import PairOptions
 from cusfm_ros.io.extrinsics_yaml import read_extrinsics
 from cusfm_ros.io.tum import read_tum
-from cusfm_ros.pipeline.features import FeatureOptions
-from cusfm_ros.pipeline.keyframes import KeyframeOptions
+from cusfm_ros.io.keyframes_file import read_keyframes
+from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.pipeline.mapper import Mapper, MapperOptions
-from cusfm_ros.pipeline.mapping import MappingStageOptions
-from cusfm_ros.pipeline.options import load_config
+from cusfm_ros.pipeline.options import resolve_options
 from cusfm_ros.sim.generator import SimulationOptions, Simulator
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
@@ -82,9 +79,11 @@ def timing_row(label: str, report: dict) -> str:
     return f"| {label} | {cells} |"
 
 
-def base_options(preset: KeyframeOptions, max_keypoints: int) -> MapperOptions:
-    return MapperOptions(keyframes=preset,
-                         features=FeatureOptions(max_keypoints=max_keypoints))
+def base_options(min_translation_m: float, max_keypoints: int, preset=None,
+                 **overrides) -> MapperOptions:
+    return resolve_options(preset, {"keyframes.min_translation_m": min_translation_m,
+                                    "features.extractor.aliked.max_keypoints": max_keypoints,
+                                    **overrides})
 
 
 def radius_run(sim: Path, source: Path, run: Path, options: MapperOptions) -> dict:
@@ -95,7 +94,6 @@ def radius_run(sim: Path, source: Path, run: Path, options: MapperOptions) -> di
             if not (run / stage).exists():
                 shutil.copytree(source / stage, run / stage)
         shutil.copy(source / "report.json", run / "report.json")
-        options = replace(options, pairs=replace(options.pairs, mode="radius"))
         Mapper(options).solve(sim / "bag", run, ["pairs", "matching", "mapping", "export"])
     return json.loads((run / "report.json").read_text())
 
@@ -127,11 +125,10 @@ def extrinsic_errors(sim: Path, run: Path, start: Path) -> str:
 
 
 def write_start_extrinsics(run: Path) -> Path:
-    """The calibration the mapper started from (the bag's /tf_static), from frames_meta."""
+    """The calibration the mapper started from (the bag's /tf_static), from the keyframes."""
     from cusfm_ros.io.extrinsics_yaml import CameraExtrinsics, Extrinsics, write_extrinsics
-    from cusfm_ros.io.frames_meta import read_frames_meta
 
-    rig = read_frames_meta(run / "keyframes" / "frames_meta.json").rig
+    rig = read_keyframes(RunDir(run).keyframes).rig
     path = run / "extrinsics_start.yaml"
     write_extrinsics(path, Extrinsics(rig.base_frame_id, {
         c.name: CameraExtrinsics(c.frame_id, Rigid3.from_matrix(c.rig_from_cam.matrix()))
@@ -153,7 +150,7 @@ def main() -> None:
     size = tuple(int(v) for v in args.size.split("x"))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    keyframe_options = KeyframeOptions(min_translation_m=0.5)
+    spacing_m = 0.5
     lines = []
 
     def emit(text: str) -> None:
@@ -173,13 +170,13 @@ def main() -> None:
         if name not in args.cases:
             continue
         sim = simulate(out, name, size, loops=2, **simulation, **DRIFT)
-        options = base_options(keyframe_options, args.max_keypoints)
         for mode, run in (("view_graph", out / f"{name}_view_graph"),
                           (f"radius {radius_m:g} m", out / f"{name}_radius")):
             if mode == "view_graph":
-                report = mapped(sim, run, options)
+                report = mapped(sim, run, base_options(spacing_m, args.max_keypoints))
             else:
-                options = replace(options, pairs=PairOptions(mode="radius", radius_m=radius_m))
+                options = base_options(spacing_m, args.max_keypoints, **{
+                    "pairs.mode": "radius", "pairs.radius_m": radius_m})
                 report = radius_run(sim, out / f"{name}_view_graph", run, options)
             emit(trajectory_row(f"{label}, {mode}", sim, run, report))
             timings.append((f"{label}, {mode}", report))
@@ -187,17 +184,14 @@ def main() -> None:
         sim = simulate(out, "street_noise", size, scene="street", rig="stereo",
                        frames=args.street_frames, loops=2, seed=5, pose_noise_m=(3.0, 1.0),
                        odom_yaw_drift_deg_per_m=0.0, odom_scale_error=0.0)
-        preset = MapperOptions.from_dict(load_config(CONFIG / "noisy_prior.yaml"), "preset")
-        options = replace(preset, keyframes=keyframe_options,
-                          features=FeatureOptions(max_keypoints=args.max_keypoints))
+        options = base_options(spacing_m, args.max_keypoints, CONFIG / "noisy_prior.yaml")
         report = mapped(sim, out / "street_noise", options)
         emit(trajectory_row("street stereo, GT + noise (3 m, 1 m)", sim, out / "street_noise",
                             report))
     if "noisefree" in args.cases:
         sim = simulate(out, "noisefree", size, scene="street", rig="stereo", frames=100,
                        loops=1, seed=6, sensor_noise=False, **DRIFT)
-        report = mapped(sim, out / "noisefree", base_options(keyframe_options,
-                                                             args.max_keypoints))
+        report = mapped(sim, out / "noisefree", base_options(spacing_m, args.max_keypoints))
         emit(trajectory_row("street stereo, noise-free render", sim, out / "noisefree",
                             report))
     if "extrinsics" in args.cases:
@@ -205,8 +199,8 @@ def main() -> None:
                        frames=args.indoor_frames // 2, loops=2, seed=7,
                        extrinsic_noise=(0.05, 2.0), odom_yaw_drift_deg_per_m=0.05,
                        odom_scale_error=0.01)
-        options = replace(base_options(keyframe_options, args.max_keypoints),
-                          mapping=MappingStageOptions(optimize_extrinsics=True))
+        options = base_options(spacing_m, args.max_keypoints,
+                               **{"mapping.optimize_extrinsics": True})
         run = out / "extrinsics_run"  # beside the simulation, not inside it
         report = mapped(sim, run, options)
         emit(trajectory_row("indoor stereo4, extrinsics perturbed 5 cm / 2 deg, refined", sim,

@@ -81,8 +81,8 @@ def speed_table() -> None:
 
 
 def loop_table(frames_street: int, frames_indoor: int) -> None:
-    from cusfm_ros.pipeline.keyframes import KeyframeOptions
-    from cusfm_ros.pipeline.mapper import Mapper, MapperOptions
+    from cusfm_ros.pipeline.mapper import Mapper
+    from cusfm_ros.pipeline.options import resolve_options
     from cusfm_ros.sim.generator import SimulationOptions, Simulator
     from cusfm_ros.sim.loop_truth import evaluate_loops
 
@@ -94,7 +94,7 @@ def loop_table(frames_street: int, frames_indoor: int) -> None:
                                               image_width=480, image_height=360)).generate(
                 Path(tmp) / "sim")
             run = Path(tmp) / "run"
-            options = MapperOptions(keyframes=KeyframeOptions(min_translation_m=0.3))
+            options = resolve_options(None, {"keyframes.min_translation_m": 0.3})
             report = Mapper(options).solve(sim / "bag", run)
             accuracy, wrong, count = evaluate_loops(sim, run, options.loops)
             print(f"| {scene} mono, 2 laps, {frames} frames | "

@@ -18,9 +18,11 @@ from cusfm_ros.core.evaluation import absolute_trajectory_error
 from cusfm_ros.core.geometry import se3_exp
 from cusfm_ros.core.graph.pose_graph import LoopConstraint
 from cusfm_ros.io.tum import read_tum
-from cusfm_ros.pipeline.keyframes import KeyframeOptions
-from cusfm_ros.pipeline.mapper import Mapper, MapperOptions
-from cusfm_ros.pipeline.pose_graph import PoseGraphStage
+from cusfm_ros.io.run_dir import RunDir
+from cusfm_ros.pipeline.mapper import Mapper
+from cusfm_ros.pipeline.options import resolve_options
+from cusfm_ros.pipeline.stage import StageContext
+from cusfm_ros.pipeline.stages.pose_graph import PoseGraphStage
 from cusfm_ros.sim.generator import SimulationOptions, Simulator
 
 
@@ -30,7 +32,7 @@ def run(scene: str, frames: int, tmp: Path) -> str:
                                       odom_yaw_drift_deg_per_m=0.3, odom_scale_error=0.02)
                     ).generate(tmp / "sim")
     run_dir = tmp / "run"
-    options = MapperOptions(keyframes=KeyframeOptions(min_translation_m=0.3))
+    options = resolve_options(None, {"keyframes.min_translation_m": 0.3})
     report = Mapper(options).solve(sim / "bag", run_dir)
     truth = read_tum(sim / "ground_truth.tum")
     raw = absolute_trajectory_error(truth, read_tum(run_dir / "keyframes" / "initial_poses.tum"))
@@ -38,7 +40,9 @@ def run(scene: str, frames: int, tmp: Path) -> str:
     nodes = report["stages"]["pose_graph"]["nodes"]
     false_loop = LoopConstraint(nodes // 5, 3 * nodes // 5,
                                 se3_exp(np.array([0.0, 0.0, 0.5, 3.0, -2.0, 0.0])))
-    PoseGraphStage(options.pose_graph, options.features).solve(run_dir, extra=[false_loop])
+    run = RunDir(run_dir)
+    PoseGraphStage().run(StageContext(run, options, input_digests={"features": None}),
+                         extra=[false_loop])
     injected = absolute_trajectory_error(truth, read_tum(run_dir / "pose_graph" / "poses.tum"))
     stage = report["stages"]["pose_graph"]
     return (f"| {scene} stereo, 2 laps, {frames} frames | {stage['loop_edges']} | "

@@ -80,7 +80,8 @@ class StageRunner:
         self.stages = stages
         self.options = options
         self.producer = {artifact: stage.name for stage in stages
-                         for artifact in stage.outputs + stage.optional_outputs}
+                         for artifact in stage.outputs + stage.optional_outputs
+                         + stage.provides}
 
     @property
     def names(self) -> tuple[str, ...]:

@@ -53,6 +53,8 @@ class Stage:
     """Artifacts written; removed before a rerun whose fingerprint changed."""
     optional_outputs: ClassVar[tuple[str, ...]] = ()
     """Artifacts written only in some configurations (e.g. the BIRCH state)."""
+    provides: ClassVar[tuple[str, ...]] = ()
+    """Artifacts inside an output directory that other stages read on their own."""
     version: ClassVar[int] = 1
     """Bumped when the stage's output format or algorithm changes (forces a rerun)."""
 

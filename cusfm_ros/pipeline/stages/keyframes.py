@@ -104,6 +104,7 @@ class KeyframesStage(Stage):
     sections = {"keyframes": KeyframeOptions}
     reads = ("keyframes",)
     outputs = ("keyframes_dir",)
+    provides = ("keyframes", "frames_meta", "keyframe_initial_poses")
 
     def external_inputs(self, context: StageContext) -> dict:
         if context.bag is None:

@@ -142,6 +142,7 @@ class MappingStage(Stage):
     inputs = ("keyframes", "pairs", "features", "verified_matches")
     optional_inputs = ("pose_graph_poses",)
     outputs = ("mapping_dir",)
+    provides = ("mapping_poses", "mapping_extrinsics", "mapping_points", "mapping_summary")
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options

@@ -1,0 +1,312 @@
+"""The stage contract: resume semantics of the generic runner, killed stages, option precedence
+(preset < command line, booleans both ways, CLI == node), and stages on explicit inputs."""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from cusfm_ros.cli.main import build_parser, main
+from cusfm_ros.io.run_dir import RunDir
+from cusfm_ros.sim.generator import SimulationOptions, Simulator
+
+# SIFT + k-NN: no ONNX models needed, seconds per stage on two cores
+FAST = ["--min-translation-m", "0.3", "--features", "sift", "--max-keypoints", "768",
+        "--set", "vocabulary.depth=3"]
+
+
+@pytest.fixture(scope="module")
+def loop_bag(tmp_path_factory):
+    """An indoor stereo loop driven twice: the loops stage finds loops."""
+    return Simulator(SimulationOptions(
+        scene="indoor", rig="stereo", frames=60, loops=2, image_width=320, image_height=240,
+        odom_yaw_drift_deg_per_m=0.3, odom_scale_error=0.02, seed=3)
+    ).generate(tmp_path_factory.mktemp("loop") / "sim")
+
+
+def _written(run):
+    """Every stage output file with its modification time (not the runner's bookkeeping)."""
+    return {p: p.stat().st_mtime_ns for p in run.rglob("*") if p.is_file()
+            and p.name != "report.json" and "stages" not in p.relative_to(run).parts}
+
+
+def _records(run):
+    return {p.stem: json.loads(p.read_text()) for p in (run / "stages").glob("*.json")
+            if p.stem != "digests"}
+
+
+def _stages(run):
+    return json.loads((run / "report.json").read_text())["stages"]
+
+
+def test_resume_reruns_exactly_what_changed(loop_bag, tmp_path):
+    run = tmp_path / "run"
+    args = ["map", str(loop_bag / "bag"), "--out", str(run)] + FAST
+    assert main(args) == 0
+    first = _stages(run)
+    assert first["loops"]["loops"] > 0 and not any(e["reused"] for e in first.values())
+    # the same command twice: every stage reused, no output rewritten
+    written = _written(run)
+    assert main(args) == 0
+    assert all(e["reused"] for e in _stages(run).values())
+    assert _written(run) == written
+    before = _records(run)
+    # a vocabulary option: vocabulary and loops rerun, features untouched
+    assert main(args + ["--set", "vocabulary.branching=8"]) == 0
+    after, stages = _records(run), _stages(run)
+    assert not stages["vocabulary"]["reused"] and not stages["loops"]["reused"]
+    assert stages["keyframes"]["reused"] and stages["features"]["reused"]
+    features = RunDir(run).features
+    assert features.stat().st_mtime_ns == written[features]
+    assert after["vocabulary"]["options"]["vocabulary"]["branching"] == 8
+    # loops.json changed (other BoW scores), so the pose graph reran; downstream of it a
+    # stage reran exactly when the content of one of its inputs changed
+    assert after["loops"]["outputs"]["loops"] != before["loops"]["outputs"]["loops"]
+    assert not stages["pose_graph"]["reused"]
+    for name in ("pairs", "matching", "mapping", "export"):
+        changed = after[name]["inputs"] != before[name]["inputs"]
+        assert stages[name]["reused"] is not changed, name
+    # the report keeps each stage's own options; the vocabulary's record shows today's
+    assert stages["vocabulary"]["options"]["vocabulary"]["branching"] == 8
+    assert stages["features"]["fingerprint"] == before["features"]["fingerprint"]
+
+
+def test_a_killed_stage_is_redone_and_reaches_the_same_result(loop_bag, tmp_path,
+                                                              monkeypatch):
+    from cusfm_ros.pipeline.stages import matching
+
+    reference = tmp_path / "reference"
+    bag = str(loop_bag / "bag")
+    assert main(["map", bag, "--out", str(reference)] + FAST) == 0
+    # kill the matching stage after 40 pairs (KeyboardInterrupt stands in for a signal)
+    run = tmp_path / "run"
+    calls = {"n": 0}
+    real = matching.essential_inliers
+
+    def dying(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > 40:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(matching, "essential_inliers", dying)
+    with pytest.raises(KeyboardInterrupt):
+        main(["map", bag, "--out", str(run)] + FAST)
+    monkeypatch.setattr(matching, "essential_inliers", real)
+    assert json.loads((run / "stages" / "matching.json").read_text())["status"] == "running"
+    assert not (run / "mapping").exists() and not (run / "poses.tum").exists()
+    # resumed: the complete entries are kept, the rest is redone
+    assert main(["map", bag, "--out", str(run)] + FAST) == 0
+    stages = _stages(run)
+    assert not stages["matching"]["reused"]
+    assert stages["matching"]["matched_now"] == stages["matching"]["pairs"] - 40
+    assert stages["features"]["reused"] and stages["pairs"]["reused"]
+    assert (run / "poses.tum").read_bytes() == (reference / "poses.tum").read_bytes()
+    # killed again, this time leaving a truncated HDF5 store: detected and redone whole
+    record = run / "stages" / "matching.json"
+    data = json.loads(record.read_text())
+    record.write_text(json.dumps({**data, "status": "running"}))
+    store = RunDir(run).verified_matches
+    store.write_bytes(store.read_bytes()[:96])
+    assert main(["map", bag, "--out", str(run)] + FAST) == 0
+    assert _stages(run)["matching"]["matched_now"] == stages["matching"]["pairs"]
+    assert (run / "poses.tum").read_bytes() == (reference / "poses.tum").read_bytes()
+
+
+def test_stage_selection_errors(loop_bag, tmp_path, capsys):
+    run = str(tmp_path / "run")
+    assert main(["map", str(loop_bag / "bag"), "--out", run, "--steps", "mapping",
+                 "--skip-mapping"]) == 1
+    assert "no stage left to run" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+    assert main(["map", str(loop_bag / "bag"), "--out", run, "--steps", "features"]) == 1
+    err = capsys.readouterr().err
+    assert "run/keyframes is missing: run the keyframes stage first" in err, err
+
+
+def _cli_options(argv):
+    from cusfm_ros.cli.options import resolved_options
+
+    return resolved_options(build_parser().parse_args(argv))
+
+
+def test_option_precedence_booleans_and_cli_equals_node(tmp_path):
+    from cusfm_ros.ros.mapper_node import mapper_options_from_parameters
+
+    preset = tmp_path / "preset.yaml"
+    preset.write_text("frame_type: rig\nexport: {rgb: true, colmap_binary: true}\n"
+                      "features: {extractor: {aliked: {max_keypoints: 300}}}\n"
+                      "loops: {top_k: 7}\n")
+    base = ["map", "bag", "--out", "run", "--config", str(preset)]
+    options = _cli_options(base)
+    assert options.export.rgb and options.export.colmap_binary  # the preset's values kept
+    assert options.features.extractor.aliked.max_keypoints == 300 and options.loops.top_k == 7
+    switched = _cli_options(base + ["--no-rgb", "--max-keypoints", "500", "--frame-type",
+                                    "camera", "--set", "loops.top_k=9", "--seed", "4"])
+    assert not switched.export.rgb and switched.export.colmap_binary  # CLI beats the preset
+    assert switched.features.extractor.aliked.max_keypoints == 500
+    assert switched.frame_type == "camera" and switched.loops.top_k == 9 and switched.seed == 4
+    off = tmp_path / "off.yaml"
+    off.write_text("export: {rgb: false}\n")
+    assert _cli_options(["map", "b", "--out", "r", "--config", str(off), "--rgb"]).export.rgb
+    # the ROS node resolves the same options from the same inputs
+    node = mapper_options_from_parameters({
+        "config": str(preset), "rgb": False, "max_keypoints": 500, "frame_type": "camera",
+        "seed": 4, "bag": "bag", "out": "run", "steps": ["keyframes"]})
+    assert node == _cli_options(base + ["--no-rgb", "--max-keypoints", "500",
+                                        "--frame-type", "camera", "--seed", "4"])
+    assert mapper_options_from_parameters({"config": str(preset)}) == options
+
+
+@pytest.mark.parametrize("preset, message", [
+    ("loops: {seed: 3}\n", "preset.yaml: loops.seed: set `seed` once at the top level"),
+    ("features: {extractor: {aliked: {device: cuda}}}\n",
+     "features.extractor.aliked.device: set `device` once at the top level"),
+    ("pose_graph: {frame_type: camera}\n", "pose_graph.frame_type: set `frame_type` once"),
+    ("loops: {top_k: many}\n", "preset.yaml: loops.top_k: expected an integer, got 'many'"),
+    ("mapping: {max_pose_change_m: .inf}\n", "mapping.max_pose_change_m: must be finite"),
+    ("loops: 3\n", "preset.yaml: loops: expected a mapping of options, got 3"),
+    ("features: {extractor: {name: orb}}\n", "unknown extractor 'orb'"),
+    ("bogus: {}\n", "unknown section(s) ['bogus']"),
+])
+def test_bad_presets_name_the_file_and_key(tmp_path, preset, message):
+    from cusfm_ros.errors import ConfigError
+    from cusfm_ros.pipeline.options import resolve_options
+
+    path = tmp_path / "preset.yaml"
+    path.write_text(preset)
+    with pytest.raises(ConfigError) as error:
+        resolve_options(path)
+    assert message in str(error.value)
+
+
+def test_every_feature_component_knob_is_reachable_from_yaml(tmp_path):
+    from cusfm_ros.pipeline.options import resolve_options
+
+    options = resolve_options({"features": {
+        "extractor": {"name": "sift", "sift": {"contrast_threshold": 0.04, "root_sift": False}},
+        "matcher": {"knn": {"ratio": 0.7, "metric": "cosine", "mutual": False}}}})
+    assert options.features.extractor.sift.contrast_threshold == 0.04
+    assert options.features.matcher.name == "knn"  # SIFT picks k-NN when none is named
+    knn = options.features.matcher.knn
+    assert knn.metric == "cosine" and not knn.mutual and knn.ratio == 0.7
+    lightglue = resolve_options(None, {"features.matcher.lightglue.filter_threshold": 0.3,
+                                       "features.extractor.aliked.nms_radius": 3})
+    assert lightglue.features.matcher.lightglue.filter_threshold == 0.3
+    assert lightglue.features.extractor.aliked.nms_radius == 3
+
+
+def test_stages_run_on_explicit_inputs(loop_bag, tmp_path):
+    """Feature extraction and pair matching on an image list and a pair list of our choosing,
+    outside any run directory (what a localizer does with query images)."""
+    from cusfm_ros.core.features.sift import SiftExtractor, SiftOptions
+    from cusfm_ros.core.features.knn import KnnMatcher
+    from cusfm_ros.io.feature_store import FeatureStore
+    from cusfm_ros.pipeline.stages.features import extract_features
+    from cusfm_ros.pipeline.stages.keyframes import KeyframeOptions, extract_keyframes
+    from cusfm_ros.pipeline.stages.matching import MatchingOptions, match_pairs
+
+    keyframes = extract_keyframes(loop_bag / "bag", tmp_path / "kf", KeyframeOptions(
+        min_translation_m=0.5)).keyframe_set
+    frames = keyframes.images_in_time_order()[:6]
+    images = [(k.image_name, tmp_path / "kf" / k.image_name) for k in frames]
+    with FeatureStore(tmp_path / "query.h5", {"mine": 1}) as store, \
+            FeatureStore(tmp_path / "verified.h5", {"mine": 1}) as verified:
+        counts = extract_features(images, SiftExtractor(SiftOptions(max_keypoints=500)), store)
+        assert counts["extracted"] == 6
+        assert sorted(store.feature_names()) == sorted(n for n, _ in images)
+        pairs = [(frames[i].image_name, frames[i + 1].image_name) for i in range(5)]
+        cameras = {k.image_name: keyframes.rig[k.camera_name].camera for k in frames}
+        result = match_pairs(pairs, cameras, store, KnnMatcher(), MatchingOptions(), 0,
+                             verified)
+        assert result["pairs"] == 5 and result["verified_matches"] > 100
+        assert all(verified.has_matches(a, b) for a, b in pairs)
+
+
+def test_two_view_estimation_leaves_opencv_global_rng_alone(rng):
+    import cv2
+
+    from cusfm_ros.core.geometry import Rigid3
+    from cusfm_ros.core.relpose.two_view import TwoViewOptions, estimate_two_view
+
+    points = rng.uniform(-1, 1, (300, 3)) + [0, 0, 6]
+    motion = Rigid3.from_rotvec([0.02, 0.1, 0.0], [0.4, 0.0, 0.1])
+    x0 = points[:, :2] / points[:, 2:]
+    moved = points @ motion.rotation.T + motion.translation
+    x1 = moved[:, :2] / moved[:, 2:]
+    x1[:60] += rng.normal(0, 0.05, (60, 2))  # 20 % outliers
+    cv2.setRNGSeed(99)
+    expected = cv2.randu(np.zeros(4), 0, 1).copy()
+    cv2.setRNGSeed(99)
+    result = estimate_two_view(x0, x1, TwoViewOptions(threshold=1e-3, seed=5))
+    assert np.array_equal(cv2.randu(np.zeros(4), 0, 1), expected)  # no side effect
+    again = estimate_two_view(x0, x1, TwoViewOptions(threshold=1e-3, seed=5))
+    assert np.array_equal(result.inlier_mask, again.inlier_mask)  # seeded: repeatable
+    assert result.success and result.inlier_mask[60:].all() and result.num_inliers <= 245
+    assert np.allclose(result.rotation, motion.rotation, atol=1e-3)
+    direction = motion.translation / np.linalg.norm(motion.translation)
+    assert np.allclose(result.translation_direction, direction, atol=1e-3)
+
+
+def test_core_calls_no_global_rng_seeding():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "cusfm_ros"
+    offenders = [str(p) for p in root.rglob("*.py")
+                 if "cv2.setRNGSeed(" in p.read_text() or "np.random.seed(" in p.read_text()]
+    assert not offenders
+
+
+def test_stage_modules_spell_no_run_directory_paths():
+    """Stages ask RunDir for every path (no `run_dir / "..."` literals)."""
+    import re
+    from pathlib import Path
+
+    stages = Path(__file__).resolve().parents[1] / "cusfm_ros" / "pipeline" / "stages"
+    pattern = re.compile(r"""(run_dir|root|run)\s*/\s*["']""")
+    offenders = [p.name for p in stages.glob("*.py") if pattern.search(p.read_text())]
+    assert not offenders
+
+
+def test_registry_drives_options_steps_and_cli():
+    from cusfm_ros.pipeline.options import SECTIONS, MapperOptions
+    from cusfm_ros.pipeline.registry import STAGE_NAMES, STAGES
+
+    assert STAGE_NAMES == ("keyframes", "features", "vocabulary", "loops", "pose_graph",
+                           "pairs", "matching", "mapping", "export")
+    owned = {name for stage in STAGES for name in stage.sections}
+    assert owned == set(SECTIONS)
+    fields = {f for f in MapperOptions.__dataclass_fields__}
+    assert fields == owned | {"seed", "device", "frame_type"}
+    help_text = build_parser().parse_args(["map", "b", "--out", "o"])
+    assert all(hasattr(help_text, f"skip_{name}") for name in STAGE_NAMES)
+    # every declared input is some stage's output
+    outputs = {a for stage in STAGES
+               for a in stage.outputs + stage.optional_outputs + stage.provides}
+    for stage in STAGES:
+        assert set(stage.inputs + stage.optional_inputs) <= outputs, stage.name
+
+
+def test_keyframes_record_keeps_nanoseconds(tmp_path):
+    from cusfm_ros.core.cameras import PinholeCamera
+    from cusfm_ros.core.geometry import Rigid3
+    from cusfm_ros.core.keyframes import Keyframe, KeyframeSet
+    from cusfm_ros.core.rig import Rig, RigCamera
+    from cusfm_ros.io.keyframes_file import read_keyframes, write_keyframes
+
+    camera = PinholeCamera(640, 480, fx=500.0, fy=501.0, cx=320.5, cy=240.25)
+    rig = Rig((RigCamera("left", camera, Rigid3.from_rotvec([0, 0.1, 0], [0.1, 0, 0])),))
+    keyframes = KeyframeSet(rig, [Keyframe("0", "left", 1_700_000_000_123_456_789, "left/a.png",
+                                           "s0", Rigid3.from_rotvec([0.1, 0.2, 0.3],
+                                                                    [1.0, 2.0, 3.0]))])
+    write_keyframes(tmp_path / "keyframes.json", keyframes)
+    again = read_keyframes(tmp_path / "keyframes.json")
+    assert again.keyframes[0].stamp_ns == 1_700_000_000_123_456_789
+    assert again.keyframes[0].world_from_cam.is_close(keyframes.keyframes[0].world_from_cam,
+                                                      1e-12, 1e-12)
+    assert again.rig["left"].camera == camera and again.rig.base_frame_id == "base_link"
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__, "-q"]))
