@@ -151,7 +151,7 @@ def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
     assert summary["points"] > 1000 and summary["mean_reprojection_error_px"] < 1.0
     assert set(summary) >= {"keyframes", "pairs", "verified_matches", "tracks", "points",
                             "observations", "seconds_per_stage"}
-    assert report["versions"]["gtsam"] and report["options"]["mapping"]["frame_type"] == "rig"
+    assert report["versions"]["gtsam"] and report["options"]["frame_type"] == "rig"
     model = pycolmap.Reconstruction(str(run / "sparse"))
     assert model.num_points3D() == summary["points"] and model.num_images() == 240
     assert model.compute_num_observations() == summary["observations"]
