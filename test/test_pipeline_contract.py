@@ -46,6 +46,11 @@ def test_resume_reruns_exactly_what_changed(loop_bag, tmp_path):
     assert main(args) == 0
     first = _stages(run)
     assert first["loops"]["loops"] > 0 and not any(e["reused"] for e in first.values())
+    # refined poses carry the keyframes' full nanosecond stamps (frames_meta keeps only µs)
+    from cusfm_ros.io.tum import read_tum
+    refined, initial = read_tum(run / "poses.tum"), read_tum(run / "initial_poses.tum")
+    assert np.array_equal(refined.stamps_ns, initial.stamps_ns)
+    assert np.any(refined.stamps_ns % 1000 != 0)
     # the same command twice: every stage reused, no output rewritten
     written = _written(run)
     assert main(args) == 0

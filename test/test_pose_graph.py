@@ -4,7 +4,7 @@ from cusfm_ros.core.evaluation import AteOptions, absolute_trajectory_error
 from cusfm_ros.core.geometry import invert_matrices, se3_exp
 from cusfm_ros.core.graph.pose_graph import LoopConstraint, PoseGraphOptimizer
 from cusfm_ros.core.trajectory import Trajectory
-from cusfm_ros.sim.odometry import OdometryDriftOptions, drift_odometry
+from cusfm_ros.core.odometry_drift import OdometryDriftOptions, drift_odometry
 
 from conftest import make_loop_trajectory
 

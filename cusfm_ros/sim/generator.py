@@ -34,7 +34,7 @@ from cusfm_ros.io.bags import messages as m
 from cusfm_ros.io.bags.writer import STORAGES, BagWriter
 from cusfm_ros.io.extrinsics_yaml import CameraExtrinsics, Extrinsics, write_extrinsics
 from cusfm_ros.io.tum import write_tum
-from cusfm_ros.sim.odometry import OdometryDriftOptions, drift_odometry
+from cusfm_ros.core.odometry_drift import OdometryDriftOptions, drift_odometry
 from cusfm_ros.sim.render import CameraRays, Lighting, Renderer
 from cusfm_ros.sim.rigs import CAMERA_MODELS, RIGS, make_camera, make_rig, perturb_extrinsics
 from cusfm_ros.sim.route import Motion, Route

@@ -1,4 +1,5 @@
-"""Wheel/visual-odometry-like drift applied to a ground-truth trajectory.
+"""Wheel/visual-odometry-like drift applied to a ground-truth trajectory (test data: the
+simulator, and the converters' `--odom-drift` for real sequences that carry only ground truth).
 
 The odometry integrates the true body-frame increments with a per-metre yaw error, a scale error
 and small seeded random-walk noise, starting at the ground-truth pose of the first sample (so

@@ -1,0 +1,1 @@
+"""Dataset converters: the formats the field uses -> a rosbag2 MCAP the mapper reads."""
