@@ -87,3 +87,26 @@ def test_cheirality_and_angle_checks(rng):
     assert estimate is None
     with pytest.raises(ConfigError, match="dlt or midpoint"):
         TriangulationOptions(method="svd")
+
+
+def test_mapping_quality_flags_a_path_that_contradicts_the_odometry_scale():
+    """A refined path 20 % longer than the odometry's is reported, one 2 % longer is not."""
+    from types import SimpleNamespace
+
+    from cusfm_ros.core.mapping.structure import mapping_quality
+
+    def line(step_m):
+        poses = np.tile(np.eye(4), (11, 1, 1))
+        poses[:, 0, 3] = np.arange(11) * step_m
+        return poses
+
+    structure = SimpleNamespace(start_world_from_rig=line(1.0), input_world_from_rig=line(1.0))
+    result = SimpleNamespace(rounds=[{"mean_error_px": 0.5, "cost_before": 2.0,
+                                      "cost_after": 1.0}] * 2)
+    quality = mapping_quality(structure, line(1.2), result, max_pose_change_m=50.0,
+                              max_odometry_scale_change=0.1)
+    assert quality["refined_over_input_path_length"] == pytest.approx(1.2)
+    assert any("20.0% longer than the input's" in s for s in quality["suspicious"])
+    fine = mapping_quality(structure, line(1.02), result, 50.0, 0.1)
+    assert fine["suspicious"] == [] and fine["refined_over_input_path_length"] == \
+        pytest.approx(1.02)

@@ -213,10 +213,16 @@ def refined_world_from_rig(structure: PoseStructure, result: MappingResult,
     return out
 
 
+def path_length_m(world_from_rig: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(world_from_rig[:, :3, 3], axis=0), axis=1).sum())
+
+
 def mapping_quality(structure: PoseStructure, world_from_rig: np.ndarray,
-                    result: MappingResult, max_pose_change_m: float) -> dict:
-    """How far the refined poses moved from their start and from the input's relative motion;
-    ``suspicious`` lists the reasons to believe they are worse."""
+                    result: MappingResult, max_pose_change_m: float,
+                    max_odometry_scale_change: float = 0.1) -> dict:
+    """How far the refined poses moved from their start and from the input's relative motion,
+    and the scale of the input relative to the refined path; ``suspicious`` lists the
+    reasons to believe they are worse (or the input wrong beyond its noise)."""
     start = structure.start_world_from_rig
     moved = np.linalg.norm(world_from_rig[:, :3, 3] - start[:, :3, 3], axis=1)
     inp = structure.input_world_from_rig
@@ -229,7 +235,16 @@ def mapping_quality(structure: PoseStructure, world_from_rig: np.ndarray,
                    np.linalg.norm(delta[:, 3:], axis=1))) if len(delta) else 0.0,
                "error_px_first_round": first["mean_error_px"],
                "error_px_last_round": last["mean_error_px"]}
+    input_length = path_length_m(inp)
+    quality["refined_over_input_path_length"] = (
+        path_length_m(world_from_rig) / input_length if input_length > 0 else 1.0)
     suspicious = []
+    change = quality["refined_over_input_path_length"] - 1.0
+    if abs(change) > max_odometry_scale_change:
+        suspicious.append(f"the refined path is {abs(change):.1%} "
+                          f"{'longer' if change > 0 else 'shorter'} than the input's: the "
+                          "odometry's scale (or the stereo calibration) is off beyond its "
+                          "stated noise")
     if quality["max_pose_change_m"] > max_pose_change_m:
         suspicious.append(f"a pose moved {quality['max_pose_change_m']:.1f} m from its start")
     if last["cost_after"] > last["cost_before"] * 1.0001:

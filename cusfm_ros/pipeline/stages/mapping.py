@@ -55,6 +55,9 @@ class MappingStageOptions:
     """Rig sample ids held at their initial pose (map update: the existing map's samples)."""
     max_pose_change_m: float = 50.0
     """A refined pose further than this from its start is reported as suspicious."""
+    max_odometry_scale_change: float = 0.1
+    """A refined path longer or shorter than the input's by more than this fraction is
+    reported as suspicious."""
 
     def __post_init__(self) -> None:
         if self.optimize_extrinsics and self.rolling_shutter_line_delay_s > 0:
@@ -67,6 +70,8 @@ class MappingStageOptions:
             raise ConfigError("rolling_shutter_line_delay_s must be >= 0")
         if self.max_pose_change_m <= 0:
             raise ConfigError("max_pose_change_m must be > 0")
+        if self.max_odometry_scale_change <= 0:
+            raise ConfigError("max_odometry_scale_change must be > 0")
 
 
 @dataclass
@@ -114,7 +119,8 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
         names = keyframes.rig.names
         rig_from_cam = {names[s]: Rigid3.from_matrix(result.node_from_sensor[s])
                         for s in range(len(names))}
-    quality = mapping_quality(structure, world_from_rig, result, options.max_pose_change_m)
+    quality = mapping_quality(structure, world_from_rig, result, options.max_pose_change_m,
+                              options.max_odometry_scale_change)
     reprojection, per_observation = pixel_errors(keyframes, structure, observations, result)
     valid = np.isfinite(result.points[:, 0])
     track_of_obs = np.repeat(np.arange(len(data.offsets) - 1), np.diff(data.offsets))
