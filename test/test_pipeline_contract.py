@@ -315,3 +315,24 @@ def test_keyframes_record_keeps_nanoseconds(tmp_path):
 
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))
+
+
+@pytest.mark.parametrize("reader, stage", [("keyframes", "keyframes"), ("loops", "loops")])
+@pytest.mark.parametrize("content, problem", [
+    (None, "no such file (run the {stage} stage)"),
+    ("{not json", "invalid JSON"),
+    ('{"format": "other/9"}', "format: expected 'cusfm_{stage}/1'"),
+])
+def test_artifact_readers_name_the_file_and_the_fix(tmp_path, reader, stage, content, problem):
+    from cusfm_ros.errors import FormatError
+    from cusfm_ros.io.keyframes_file import read_keyframes
+    from cusfm_ros.io.loops_file import read_loops
+
+    path = tmp_path / f"{stage}.json"
+    if content is not None:
+        path.write_text(content)
+    read = {"keyframes": read_keyframes, "loops": read_loops}[reader]
+    with pytest.raises(FormatError) as error:
+        read(path)
+    assert str(error.value).startswith(str(path))
+    assert problem.format(stage=stage) in str(error.value)

@@ -23,6 +23,7 @@ from cusfm_ros.core.keyframes import Keyframe, KeyframeSet, StereoPair
 from cusfm_ros.core.rig import Rig, RigCamera
 from cusfm_ros.errors import CusfmError, FormatError
 from cusfm_ros.io.atomic import atomic_write
+from cusfm_ros.io.json_record import read_json_record
 
 FORMAT = "cusfm_keyframes/1"
 
@@ -56,16 +57,7 @@ def write_keyframes(path: str | os.PathLike, keyframe_set: KeyframeSet) -> None:
 
 def read_keyframes(path: str | os.PathLike) -> KeyframeSet:
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(path, None, "no such file", "run the keyframes stage")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise FormatError(path, None, f"invalid JSON ({exc})", "rerun the keyframes stage "
-                          "with --overwrite") from None
-    if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise FormatError(path, "format", f"expected {FORMAT!r}",
-                          "rerun the keyframes stage with --overwrite")
+    data = read_json_record(path, FORMAT, "keyframes")
     where = "cameras"
     try:
         cameras = []

@@ -16,6 +16,7 @@ from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.retrieval.loops import LoopRecord
 from cusfm_ros.errors import CusfmError, FormatError
 from cusfm_ros.io.atomic import atomic_write
+from cusfm_ros.io.json_record import read_json_record
 
 FORMAT = "cusfm_loops/1"
 
@@ -41,14 +42,7 @@ def write_loops(path: str | os.PathLike, loops: list[LoopRecord],
 
 def read_loops(path: str | os.PathLike) -> list[LoopRecord]:
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(path, None, "no such file", "run the loops stage")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise FormatError(path, None, f"invalid JSON ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise FormatError(path, "format", f"expected {FORMAT!r}", "rerun the loops stage")
+    data = read_json_record(path, FORMAT, "loops")
     loops = []
     for index, x in enumerate(data.get("loops", [])):
         try:

@@ -34,8 +34,27 @@ BACKENDS = ("auto", "onnx", "torch")
 DEVICES = ("auto", "cpu", "cuda")
 
 
+class _Choice:
+    """One component chosen by ``name`` among option sets held side by side."""
+
+    name: str
+
+    @property
+    def selected(self):
+        """The options of the chosen component."""
+        return getattr(self, self.name)
+
+    def fingerprint(self) -> dict:
+        """What changes the results: the name and the chosen component's options (not where
+        or on how many threads it runs)."""
+        selected = options_as_dict(self.selected)
+        selected.pop("device", None)
+        selected.pop("threads", None)
+        return {"name": self.name, self.name: selected}
+
+
 @dataclass(frozen=True)
-class ExtractorOptions:
+class ExtractorOptions(_Choice):
     name: str = "aliked"
     """``aliked`` (learned, ONNX) or ``sift`` (OpenCV)."""
     aliked: AlikedOptions = field(default_factory=AlikedOptions)
@@ -45,21 +64,9 @@ class ExtractorOptions:
         if self.name not in EXTRACTORS:
             raise ConfigError(f"unknown extractor {self.name!r} (use {', '.join(EXTRACTORS)})")
 
-    @property
-    def selected(self):
-        """The options of the chosen extractor."""
-        return getattr(self, self.name)
-
-    def fingerprint(self) -> dict:
-        """What changes the features: the name and the chosen extractor's options."""
-        selected = options_as_dict(self.selected)
-        selected.pop("device", None)
-        selected.pop("threads", None)
-        return {"name": self.name, self.name: selected}
-
 
 @dataclass(frozen=True)
-class MatcherOptions:
+class MatcherOptions(_Choice):
     name: str = "lightglue"
     """``lightglue`` (for ALIKED) or ``knn`` (nearest neighbours, ratio test)."""
     lightglue: LightGlueOptions = field(default_factory=LightGlueOptions)
@@ -68,16 +75,6 @@ class MatcherOptions:
     def __post_init__(self) -> None:
         if self.name not in MATCHERS:
             raise ConfigError(f"unknown matcher {self.name!r} (use {', '.join(MATCHERS)})")
-
-    @property
-    def selected(self):
-        return getattr(self, self.name)
-
-    def fingerprint(self) -> dict:
-        selected = options_as_dict(self.selected)
-        selected.pop("device", None)
-        selected.pop("threads", None)
-        return {"name": self.name, self.name: selected}
 
 
 @dataclass(frozen=True)
