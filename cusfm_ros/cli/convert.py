@@ -7,7 +7,7 @@ import argparse
 
 from cusfm_ros.errors import ConfigError, CusfmError
 
-FORMATS = ("kitti",)
+FORMATS = ("kitti", "euroc", "tum", "colmap", "frames_meta")
 
 
 def _drift(text: str) -> tuple[float, float]:
@@ -26,8 +26,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("src", help="the dataset folder")
     parser.add_argument("out_bag", help="the bag directory to write")
     parser.add_argument("--rate-hz", type=float, default=10.0,
-                        help="frame rate when the dataset has no time stamps (KITTI: 10)")
+                        help="frame rate when the dataset has no time stamps (KITTI without "
+                             "times.txt, COLMAP models)")
     parser.add_argument("--poses", default=None, help="ground-truth pose file (KITTI format)")
+    parser.add_argument("--camera", default=None, metavar="CAMERA_YAML",
+                        help="intrinsics (ROS camera_calibration YAML) for TUM sequences "
+                             "that are not Freiburg 1/2/3")
+    parser.add_argument("--images", default=None, help="image folder (colmap, frames_meta)")
     parser.add_argument("--odom-drift", type=_drift, default=None,
                         metavar="YAW_DEG_PER_M,SCALE",
                         help="also write /odom: the ground truth with this seeded drift "
@@ -43,8 +48,12 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from cusfm_ros.core.odometry_drift import OdometryDriftOptions, drift_odometry
+    from cusfm_ros.io.convert.colmap_folder import read_colmap_folder
+    from cusfm_ros.io.convert.euroc import read_euroc
+    from cusfm_ros.io.convert.frames_meta_folder import read_frames_meta_folder
     from cusfm_ros.io.convert.kitti import read_kitti
     from cusfm_ros.io.convert.sequence import write_sequence_bag
+    from cusfm_ros.io.convert.tum import read_tum
 
     out = Path(args.out_bag)
     if out.exists() and not args.overwrite:
@@ -52,7 +61,14 @@ def run(args: argparse.Namespace) -> int:
                           "OUT_BAG")
     if not args.rate_hz > 0:
         raise ConfigError("--rate-hz must be > 0")
-    sequence = read_kitti(args.src, args.rate_hz, args.poses)
+    readers = {
+        "kitti": lambda: read_kitti(args.src, args.rate_hz, args.poses),
+        "euroc": lambda: read_euroc(args.src),
+        "tum": lambda: read_tum(args.src, args.camera),
+        "colmap": lambda: read_colmap_folder(args.src, args.images, args.rate_hz),
+        "frames_meta": lambda: read_frames_meta_folder(args.src, args.images),
+    }
+    sequence = readers[args.format]()
     if args.odom_drift is not None:
         if sequence.ground_truth is None:
             raise CusfmError(f"{args.src}: no ground-truth poses to derive odometry from "

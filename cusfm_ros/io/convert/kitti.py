@@ -19,7 +19,8 @@ from cusfm_ros.core.cameras import PinholeCamera
 from cusfm_ros.core.geometry import Rigid3, first_non_increasing
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CalibrationError, FormatError
-from cusfm_ros.io.convert.sequence import BODY_FROM_OPTICAL, ImageSequence, SequenceCamera
+from cusfm_ros.io.convert.sequence import (BODY_FROM_OPTICAL, Frame, ImageSequence,
+                                           SequenceCamera)
 
 logger = logging.getLogger(__name__)
 CAMERA_DIRS = (("image_0", "image_1"), ("image_l", "image_r"), ("image_2", "image_3"))
@@ -118,8 +119,8 @@ def read_kitti(src: str | os.PathLike, rate_hz: float = 10.0,
     logger.info("convert kitti: %d stereo frames %dx%d, baseline %.4f m%s", len(left), width,
                 height, np.linalg.norm(cameras[1].base_from_cam.translation),
                 ", ground truth" if truth is not None else "")
-    return ImageSequence(cameras, stamps, {"cam0": left, "cam1": right}, truth,
-                         source=str(src))
+    frames = [Frame(int(t), {"cam0": a, "cam1": b}) for t, a, b in zip(stamps, left, right)]
+    return ImageSequence(cameras, frames, truth, source=str(src))
 
 
 def _stamps(src: Path, count: int, rate_hz: float) -> np.ndarray:
