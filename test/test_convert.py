@@ -267,7 +267,8 @@ def test_camera_yaml_reader(tmp_path):
 
     path = tmp_path / "camera.yaml"
     path.write_text("image_width: 640\nimage_height: 480\ncamera_name: narrow\n"
-                    "camera_matrix: {rows: 3, cols: 3, data: [500, 0, 320, 0, 501, 240, 0, 0, 1]}\n"
+                    "camera_matrix: {rows: 3, cols: 3,\n"
+                    "                data: [500, 0, 320, 0, 501, 240, 0, 0, 1]}\n"
                     "distortion_model: plumb_bob\n"
                     "distortion_coefficients: {rows: 1, cols: 5, data: [0.1, -0.05, 0, 0, 0]}\n")
     camera = read_camera_yaml(path)

@@ -13,7 +13,9 @@ def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
     """Options naming topics and frames, and keyframe spacing."""
     parser.add_argument("--image-topics", nargs="+", default=None, metavar="TOPIC",
                         help="image topics to use (default: all with a camera_info beside)")
-    parser.add_argument("--pose-source", choices=("auto", "odom", "tf"), default=None)
+    parser.add_argument("--pose-source", choices=("auto", "odom", "tf", "vo"), default=None,
+                        help="initial poses: odometry, the /tf chain or visual odometry "
+                             "(auto: the first the bag allows)")
     parser.add_argument("--odom-topic", default=None, help="nav_msgs/Odometry topic")
     parser.add_argument("--world-frame", default=None, help="fixed frame for --pose-source tf")
     parser.add_argument("--base-frame", default=None, help="body frame (default base_link)")

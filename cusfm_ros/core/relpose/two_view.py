@@ -45,7 +45,9 @@ class TwoViewResult:
         return int(self.inlier_mask.sum())
 
 
-def _usac_params(options: TwoViewOptions) -> cv2.UsacParams:
+def usac_params(options: TwoViewOptions) -> cv2.UsacParams:
+    """OpenCV USAC parameters (MAGSAC++ scoring, local optimization) seeded through
+    ``randomGeneratorState``: no global RNG involved."""
     params = cv2.UsacParams()
     params.confidence = options.confidence
     params.threshold = options.threshold
@@ -71,7 +73,7 @@ def estimate_two_view(x0: np.ndarray, x1: np.ndarray, options: TwoViewOptions = 
     if len(x0) < 5:
         return failed
     essential, mask = cv2.findEssentialMat(x0, x1, _IDENTITY, _IDENTITY, _NO_DISTORTION,
-                                           _NO_DISTORTION, _usac_params(options))
+                                           _NO_DISTORTION, usac_params(options))
     if essential is None or essential.shape != (3, 3) or mask is None:
         return failed
     inliers = mask.ravel() > 0

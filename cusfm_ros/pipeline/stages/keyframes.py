@@ -21,7 +21,7 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -31,6 +31,7 @@ from cusfm_ros.core.cameras import CameraBase
 from cusfm_ros.core.geometry import Rigid3, check_finite, first_non_increasing
 from cusfm_ros.core.keyframe_selection import group_rig_samples, select_keyframes
 from cusfm_ros.core.keyframes import Keyframe, KeyframeSet
+from cusfm_ros.core.odometry.visual import VisualOdometry, VisualOdometryOptions
 from cusfm_ros.core.rig import Rig, RigCamera
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import BagError, ConfigError, CusfmError, GeometryError
@@ -55,7 +56,9 @@ class KeyframeOptions:
     image_topics: tuple[str, ...] = ()
     """Image topics to use; empty: every image topic with a CameraInfo beside it."""
     pose_source: str = "auto"
-    """``odom`` (a nav_msgs/Odometry topic), ``tf`` (the /tf chain) or ``auto``."""
+    """``odom`` (a nav_msgs/Odometry topic), ``tf`` (the /tf chain), ``vo`` (visual odometry
+    from the images: metric with a stereo pair, arbitrary scale with one camera) or ``auto``
+    (odometry, else /tf, else visual odometry)."""
     odom_topic: str | None = None
     """Odometry topic; None: the only one in the bag."""
     world_frame: str | None = None
@@ -68,10 +71,13 @@ class KeyframeOptions:
     """Images of different cameras closer than this belong to one rig sample."""
     min_translation_m: float = 0.5
     min_rotation_deg: float = 5.0
+    visual_odometry: VisualOdometryOptions = field(default_factory=VisualOdometryOptions)
+    """The initializer for bags without a pose source."""
 
     def __post_init__(self) -> None:
-        if self.pose_source not in ("auto", "odom", "tf"):
-            raise ConfigError(f"pose_source must be auto, odom or tf, got {self.pose_source!r}")
+        if self.pose_source not in ("auto", "odom", "tf", "vo"):
+            raise ConfigError(f"pose_source must be auto, odom, tf or vo, got "
+                              f"{self.pose_source!r}")
         if self.sync_tolerance_ms < 0 or self.min_translation_m < 0 or self.min_rotation_deg < 0:
             raise ConfigError("keyframe thresholds and sync tolerance must be >= 0")
 
@@ -132,7 +138,10 @@ class KeyframeExtractor:
             layout = self._layout(bag)
             scan = self._scan(bag, layout)
             rig = self._rig(layout, scan)
-            world_from_base, pose_source = self._poses(scan)
+            if scan["use_vo"]:
+                world_from_base, pose_source = self._visual_odometry(bag, layout, rig, scan)
+            else:
+                world_from_base, pose_source = self._poses(scan)
             samples, sample_poses = self._samples(scan, layout, world_from_base)
             chosen = select_keyframes(sample_poses, self.options.min_translation_m,
                                       self.options.min_rotation_deg)
@@ -183,16 +192,22 @@ class KeyframeExtractor:
                 raise BagError(f"several odometry topics ({', '.join(layout.odometry_topics)});"
                                " choose one with --odom-topic")
         if o.pose_source == "odom" and odom_topic is None:
-            raise BagError("no nav_msgs/Odometry topic in the bag; use --pose-source tf or "
-                           "record odometry")
-        use_odom = odom_topic is not None and o.pose_source != "tf"
-        if not use_odom and layout.tf_topic is None:
-            raise BagError(f"{bag.path}: no pose source: no nav_msgs/Odometry topic and no /tf; "
-                           "record odometry (--odom-topic) or the /tf chain")
+            raise BagError("no nav_msgs/Odometry topic in the bag; use --pose-source tf or vo, "
+                           "or record odometry")
+        use_odom = odom_topic is not None and o.pose_source not in ("tf", "vo")
+        use_vo = o.pose_source == "vo" or (o.pose_source == "auto" and not use_odom
+                                           and layout.tf_topic is None)
+        if use_vo and o.pose_source == "auto":
+            logger.info("keyframes: no odometry and no /tf in the bag: initial poses from "
+                        "visual odometry")
+        if not use_odom and not use_vo and layout.tf_topic is None:
+            raise BagError(f"{bag.path}: no /tf in the bag for --pose-source tf; use "
+                           "--pose-source odom or vo")
         image_topics = {c.image_topic: c for c in layout.cameras}
         info_topics = {c.info_topic: c for c in layout.cameras}
         wanted = set(image_topics) | set(info_topics)
-        for topic in (layout.tf_static_topic, layout.tf_topic if not use_odom else None,
+        for topic in (layout.tf_static_topic,
+                      layout.tf_topic if not (use_odom or use_vo) else None,
                       odom_topic if use_odom else None):
             if topic:
                 wanted.add(topic)
@@ -245,7 +260,8 @@ class KeyframeExtractor:
                                "driver's clock jumped — fix the stamps (e.g. re-stamp with the "
                                "bag time) before mapping")
         return {"tree": tree, "infos": infos, "stamps": stamps, "num_images": num_images,
-                "odom_topic": odom_topic if use_odom else None, "odom_stamps": odom_stamps,
+                "odom_topic": odom_topic if use_odom else None, "use_vo": use_vo,
+                "odom_stamps": odom_stamps,
                 "odom_poses": odom_poses, "odom_frames": odom_frames}
 
     # -------------------------------------------------------------------------- calibration
@@ -300,6 +316,60 @@ class KeyframeExtractor:
         world = o.world_frame or "odom"
         base = o.base_frame or "base_link"
         return scan["tree"].trajectory(world, base), f"/tf {world} -> {base}"
+
+    def _visual_odometry(self, bag: BagReader, layout: BagLayout, rig: Rig, scan: dict
+                         ) -> tuple[Trajectory, str]:
+        """world_from_base_link at the rig samples (at most ``max_rate_hz``) from the images:
+        one streaming pass, frames handed to the odometry in time order."""
+        from cusfm_ros.core.features.knn import KnnMatcher
+        from cusfm_ros.core.features.sift import SiftExtractor, SiftOptions
+
+        o = self.options.visual_odometry
+        stamps = {name: np.asarray(v, dtype=np.int64) for name, v in scan["stamps"].items()}
+        odometry = VisualOdometry(rig, KnnMatcher(), o)
+        wanted = odometry.cameras
+        samples = [s for s in group_rig_samples(stamps, int(self.options.sync_tolerance_ms
+                                                            * 1e6))
+                   if all(name in s.image_stamps_ns for name in wanted)]
+        chosen, last = [], None
+        for sample in samples:
+            if last is None or sample.stamp_ns - last >= 1e9 / o.max_rate_hz - 1e6:
+                chosen.append(sample)
+                last = sample.stamp_ns
+        if len(chosen) < 2:
+            raise BagError(f"{bag.path}: visual odometry needs at least two frames of "
+                           f"{', '.join(wanted)}; found {len(chosen)}")
+        extractor = SiftExtractor(SiftOptions(max_keypoints=o.max_keypoints))
+        streams = {c.image_topic: c for c in layout.cameras if c.name in wanted}
+        lookup = {(name, stamp): index for index, sample in enumerate(chosen)
+                  for name, stamp in sample.image_stamps_ns.items() if name in wanted}
+        logger.info("keyframes: visual odometry (%s) over %d frames of %s",
+                    "stereo" if len(wanted) == 2 else "monocular", len(chosen),
+                    ", ".join(wanted))
+
+        def frames():
+            pending: dict[int, dict] = {}
+            expected = 0
+            for message in bag.messages(streams):
+                stream = streams[message.topic]
+                index = lookup.get((stream.name, bag.header_stamp_ns(message)))
+                if index is None:
+                    continue
+                image = m.decode_image(bag.deserialize(message), message.msgtype,
+                                       message.topic)
+                pending.setdefault(index, {})[stream.name] = extractor.extract(image)
+                while len(pending.get(expected, {})) == len(wanted):
+                    yield pending.pop(expected)
+                    expected += 1
+
+        stream_of_frames = frames()
+
+        def load(index: int) -> dict:
+            return next(stream_of_frames)  # the odometry asks for frames in order
+
+        result = odometry.solve([s.stamp_ns for s in chosen], load)
+        return result.world_from_rig, (f"visual odometry ({result.method}, "
+                                       f"{', '.join(wanted)})")
 
     def _samples(self, scan: dict, layout: BagLayout, world_from_base: Trajectory):
         stamps = {name: np.asarray(v, dtype=np.int64) for name, v in scan["stamps"].items()}

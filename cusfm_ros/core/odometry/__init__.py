@@ -1,0 +1,1 @@
+"""Visual odometry: initial poses for recordings that carry no odometry."""
