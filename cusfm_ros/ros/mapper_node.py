@@ -51,6 +51,18 @@ def mapper_options_from_parameters(values: dict):
                            overrides_source="parameters")
 
 
+def _declare(node, name: str, default):
+    """Declare a parameter; a switch without a default is dynamically typed and stays None
+    unless given (so it never overrides the preset)."""
+    if default is not None:
+        return node.declare_parameter(name, default).value
+    try:
+        from rcl_interfaces.msg import ParameterDescriptor
+    except ImportError:  # stand-in rclpy of the tests
+        return node.declare_parameter(name, None).value
+    return node.declare_parameter(name, None, ParameterDescriptor(dynamic_typing=True)).value
+
+
 def map_info_message(message_type, stamp, run_dir: Path, report: dict, rig) -> object:
     message = message_type()
     message.header.stamp = stamp
@@ -80,8 +92,7 @@ def main(args: Sequence[str] | None = None) -> int:
     try:
         defaults = {"bag": "", "out": "", "config": "", "steps": list(STAGE_NAMES),
                     **{name: None for name in SWITCHES}}
-        values = {name: node.declare_parameter(name, default).value
-                  for name, default in defaults.items()}
+        values = {name: _declare(node, name, default) for name, default in defaults.items()}
         if not values["bag"] or not values["out"]:
             raise ConfigError("parameters 'bag' and 'out' are required "
                               "(ros2 run cusfm_ros mapper --ros-args -p bag:=BAG -p out:=DIR)")

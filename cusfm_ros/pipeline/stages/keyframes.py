@@ -100,15 +100,17 @@ class KeyframeResult:
 
 
 def extract_keyframes(bag_path: str | os.PathLike, out_dir: str | os.PathLike,
-                      options: KeyframeOptions = KeyframeOptions()) -> KeyframeResult:
-    """Read ``bag_path`` and write its keyframes to ``out_dir`` (replaced atomically)."""
-    return KeyframeExtractor(options).solve(bag_path, out_dir)
+                      options: KeyframeOptions = KeyframeOptions(), seed: int = 0
+                      ) -> KeyframeResult:
+    """Read ``bag_path`` and write its keyframes to ``out_dir`` (replaced atomically);
+    ``seed`` seeds the visual odometry's RANSAC when the bag has no pose source."""
+    return KeyframeExtractor(options, seed).solve(bag_path, out_dir)
 
 
 class KeyframesStage(Stage):
     name = "keyframes"
     sections = {"keyframes": KeyframeOptions}
-    reads = ("keyframes",)
+    reads = ("keyframes", "seed")
     outputs = ("keyframes_dir",)
     provides = ("keyframes", "frames_meta", "keyframe_initial_poses")
 
@@ -122,13 +124,14 @@ class KeyframesStage(Stage):
 
     def run(self, context: StageContext) -> dict:
         result = extract_keyframes(context.bag, context.run.keyframes_dir,
-                                   context.options.keyframes)
+                                   context.options.keyframes, context.options.seed)
         return result.counts()
 
 
 class KeyframeExtractor:
-    def __init__(self, options: KeyframeOptions = KeyframeOptions()) -> None:
+    def __init__(self, options: KeyframeOptions = KeyframeOptions(), seed: int = 0) -> None:
         self.options = options
+        self.seed = seed
 
     def solve(self, bag_path: str | os.PathLike, out_dir: str | os.PathLike) -> KeyframeResult:
         bag_path, out = Path(bag_path), Path(out_dir)
@@ -326,7 +329,7 @@ class KeyframeExtractor:
 
         o = self.options.visual_odometry
         stamps = {name: np.asarray(v, dtype=np.int64) for name, v in scan["stamps"].items()}
-        odometry = VisualOdometry(rig, KnnMatcher(), o)
+        odometry = VisualOdometry(rig, KnnMatcher(), o, self.seed)
         wanted = odometry.cameras
         samples = [s for s in group_rig_samples(stamps, int(self.options.sync_tolerance_ms
                                                             * 1e6))
