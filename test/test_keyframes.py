@@ -122,7 +122,9 @@ def _fails(tmp_path, capsys, args, message):
     (dict(info=False), [], "no CameraInfo topic beside it"),
     (dict(tf_static=False), [], "in /tf_static; record the static transforms or pass "
                                 "--extrinsics FILE"),
-    (dict(odom=False), [], "no pose source"),
+    # no odometry, no /tf: visual odometry, which cannot track random-noise images
+    (dict(odom=False), [], "visual odometry lost track between"),
+    (dict(odom=False), ["--pose-source", "tf"], "no /tf in the bag for --pose-source tf"),
     (dict(odom_stamp_swap=True), [], "/odom: header stamps are not increasing at message 4"),
     (dict(nan_odom_at=5), [], "/odom message 6 contains NaN"),
     (dict(encoding="mono8"), [], ""),  # mono is fine
