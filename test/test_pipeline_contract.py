@@ -336,3 +336,17 @@ def test_artifact_readers_name_the_file_and_the_fix(tmp_path, reader, stage, con
         read(path)
     assert str(error.value).startswith(str(path))
     assert problem.format(stage=stage) in str(error.value)
+
+
+def test_fingerprints_read_only_the_chosen_component():
+    from cusfm_ros.pipeline.options import resolve_options
+    from cusfm_ros.pipeline.runner import option_value
+
+    base = resolve_options(None, {"features.extractor.name": "sift"})
+    other_aliked = resolve_options(None, {"features.extractor.name": "sift",
+                                          "features.extractor.aliked.max_keypoints": 99})
+    other_sift = resolve_options(None, {"features.extractor.name": "sift",
+                                        "features.extractor.sift.max_keypoints": 99})
+    path = "features.extractor"
+    assert option_value(base, path) == option_value(other_aliked, path)
+    assert option_value(base, path) != option_value(other_sift, path)

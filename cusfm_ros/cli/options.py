@@ -68,8 +68,6 @@ def _set_options(pairs: list[str]) -> dict:
 def resolved_options(args: argparse.Namespace):
     """MapperOptions from ``--config`` and every switch the command defines."""
     values = {name: getattr(args, name) for name in SWITCHES if hasattr(args, name)}
-    if hasattr(args, "extrinsics"):
-        values["extrinsics"] = args.extrinsics
     overrides = switch_overrides(values)
     overrides.update(_set_options(getattr(args, "set_options", [])))
     return resolve_options(getattr(args, "config", None), overrides)

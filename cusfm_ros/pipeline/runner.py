@@ -35,9 +35,14 @@ logger = logging.getLogger(__name__)
 
 
 def option_value(options: Any, path: str) -> Any:
+    """The value at a dotted option path, as plain data; a component choice (extractor,
+    matcher) gives its ``fingerprint()`` — the chosen component's options only, as its store
+    records them — so tuning an unused alternative reruns nothing."""
     value = options
     for part in path.split("."):
         value = getattr(value, part)
+    if hasattr(value, "fingerprint"):
+        return value.fingerprint()
     return options_as_dict(value) if hasattr(value, "__dataclass_fields__") else value
 
 

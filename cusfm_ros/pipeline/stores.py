@@ -7,6 +7,7 @@ from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.keyframes_file import read_keyframes
 from cusfm_ros.io.run_dir import RunDir
+from cusfm_ros.pipeline.config import options_as_dict
 
 
 def load_keyframes(run: RunDir) -> KeyframeSet:
@@ -32,8 +33,6 @@ def open_raw_matches(run: RunDir, options, features_digest: str | None) -> Featu
 
 
 def verified_config(options) -> dict:
-    from cusfm_ros.pipeline.config import options_as_dict
-
     return {"extractor": options.features.extractor.fingerprint(),
             "matcher": options.features.matcher.fingerprint(),
             "matching": options_as_dict(options.matching), "seed": options.seed}

@@ -16,10 +16,11 @@ import numpy as np
 import yaml
 
 from cusfm_ros.core.cameras import CameraBase, FisheyeCamera, OpenCVCamera, PinholeCamera
-from cusfm_ros.core.geometry import Rigid3, first_non_increasing
+from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CusfmError, FormatError
-from cusfm_ros.io.convert.sequence import Frame, ImageSequence, ImuSeries, SequenceCamera
+from cusfm_ros.io.convert.sequence import (Frame, ImageSequence, ImuSeries, SequenceCamera,
+                                           check_increasing)
 
 logger = logging.getLogger(__name__)
 
@@ -99,9 +100,7 @@ def _stamps(path: Path, rows) -> np.ndarray:
         stamps = np.array([int(p[0]) for _, p in rows], np.int64)
     except ValueError:
         raise FormatError(path, None, "a timestamp is not an integer of nanoseconds") from None
-    if (bad := first_non_increasing(stamps)) is not None:
-        raise FormatError(path, f"line {rows[bad][0]}", "timestamps are not increasing")
-    return stamps
+    return check_increasing(path, stamps, [number for number, _ in rows])
 
 
 def read_euroc(src: str | os.PathLike) -> ImageSequence:

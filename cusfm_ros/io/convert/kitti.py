@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from cusfm_ros.core.cameras import PinholeCamera
-from cusfm_ros.core.geometry import Rigid3, first_non_increasing
+from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CalibrationError, FormatError
 from cusfm_ros.io.convert.sequence import (BODY_FROM_OPTICAL, Frame, ImageSequence,
-                                           SequenceCamera)
+                                           SequenceCamera, check_increasing)
 
 logger = logging.getLogger(__name__)
 CAMERA_DIRS = (("image_0", "image_1"), ("image_l", "image_r"), ("image_2", "image_3"))
@@ -135,9 +135,7 @@ def _stamps(src: Path, count: int, rate_hz: float) -> np.ndarray:
                           "one line per image")
     seconds = np.array([_numbers(path, n, line, 1)[0] for n, line in lines])
     stamps = 1_000_000_000 + np.rint(seconds * 1e9).astype(np.int64)
-    if (bad := first_non_increasing(stamps)) is not None:
-        raise FormatError(path, f"line {lines[bad][0]}", "stamps are not increasing")
-    return stamps
+    return check_increasing(path, stamps, [number for number, _ in lines])
 
 
 def _poses_file(src: Path) -> Path | None:

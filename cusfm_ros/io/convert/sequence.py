@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +27,7 @@ import cv2
 import numpy as np
 
 from cusfm_ros.core.cameras import CameraBase
-from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.geometry import Rigid3, first_non_increasing
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import FormatError
 from cusfm_ros.io.bags import messages as m
@@ -86,6 +87,15 @@ class ImageSequence:
     @property
     def stamps_ns(self) -> np.ndarray:
         return np.array([f.stamp_ns for f in self.frames], np.int64)
+
+
+def check_increasing(path: Path, stamps_ns: np.ndarray, line_numbers: Sequence[int]
+                     ) -> np.ndarray:
+    """``stamps_ns`` if strictly increasing, else a ``FormatError`` naming the file and the
+    line (``line_numbers[i]`` is where stamp i was read)."""
+    if (bad := first_non_increasing(stamps_ns)) is not None:
+        raise FormatError(path, f"line {line_numbers[bad]}", "stamps are not increasing")
+    return stamps_ns
 
 
 def _read_image(path: Path) -> np.ndarray:

@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from cusfm_ros.core.cameras import CameraBase, OpenCVCamera, PinholeCamera
-from cusfm_ros.core.geometry import Rigid3, first_non_increasing
+from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CalibrationError, CusfmError, FormatError
 from cusfm_ros.io.camera_yaml import read_camera_yaml
-from cusfm_ros.io.convert.sequence import BODY_FROM_OPTICAL, Frame, ImageSequence, SequenceCamera
+from cusfm_ros.io.convert.sequence import (BODY_FROM_OPTICAL, Frame, ImageSequence,
+                                           SequenceCamera, check_increasing)
 
 # the benchmark's published calibrations of the colour cameras (640x480)
 FREIBURG = {
@@ -54,9 +55,7 @@ def _stamps(path: Path, rows) -> np.ndarray:
         stamps = np.array([int(Decimal(p[0]) * 1_000_000_000) for _, p in rows], np.int64)
     except (ValueError, ArithmeticError):
         raise FormatError(path, None, "a timestamp is not a number of seconds") from None
-    if (bad := first_non_increasing(stamps)) is not None:
-        raise FormatError(path, f"line {rows[bad][0]}", "timestamps are not increasing")
-    return stamps
+    return check_increasing(path, stamps, [number for number, _ in rows])
 
 
 def tum_camera(src: Path, camera_yaml: str | os.PathLike | None) -> CameraBase:

@@ -368,7 +368,12 @@ class KeyframeExtractor:
         stream_of_frames = frames()
 
         def load(index: int) -> dict:
-            return next(stream_of_frames)  # the odometry asks for frames in order
+            try:
+                return next(stream_of_frames)  # the odometry asks for frames in order
+            except StopIteration:
+                raise BagError(f"{bag.path}: frame {index} of the visual odometry vanished "
+                               "between the two passes over the bag; is it being written "
+                               "to?") from None
 
         result = odometry.solve([s.stamp_ns for s in chosen], load)
         return result.world_from_rig, (f"visual odometry ({result.method}, "
