@@ -48,3 +48,7 @@ class EvaluationError(CusfmError):
 
 class MappingError(CusfmError):
     """Mapping failed (too few matches, disconnected view graph, diverging optimization)."""
+
+
+class LocalizationError(CusfmError):
+    """A query cannot be localized (unusable map, wrong camera, too few correspondences)."""

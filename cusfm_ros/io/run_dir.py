@@ -13,6 +13,7 @@ No stage spells a path literal; each asks its ``RunDir``. Layout:
     pairs/                pairs.txt, pairs.json
     matching/matches.h5   geometrically verified matches per pair
     mapping/              poses.tum, extrinsics.yaml, points.npz, summary.json
+    map/                  the map store for localization and map update (io/map_store.py)
     stages/<stage>.json   the runner's record of each stage (status, fingerprint, counts)
     initial_poses.tum, poses.tum, extrinsics.yaml, sparse/, points.ply, report.json
 """
@@ -138,6 +139,10 @@ class RunDir:
     @property
     def report(self) -> Path:
         return self.root / "report.json"
+
+    @property
+    def map_dir(self) -> Path:
+        return self.root / "map"
 
     # the runner's bookkeeping
     @property

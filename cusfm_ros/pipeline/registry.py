@@ -8,6 +8,7 @@ from cusfm_ros.pipeline.stages.export import ExportStage
 from cusfm_ros.pipeline.stages.features import FeaturesStage
 from cusfm_ros.pipeline.stages.keyframes import KeyframesStage
 from cusfm_ros.pipeline.stages.loops import LoopsStage
+from cusfm_ros.pipeline.stages.map_store import MapStoreStage
 from cusfm_ros.pipeline.stages.mapping import MappingStage
 from cusfm_ros.pipeline.stages.matching import MatchingStage
 from cusfm_ros.pipeline.stages.pairs import PairsStage
@@ -24,5 +25,6 @@ STAGES = (
     MatchingStage(),
     MappingStage(),
     ExportStage(),
+    MapStoreStage(),
 )
 STAGE_NAMES = tuple(stage.name for stage in STAGES)

@@ -118,6 +118,9 @@ class SessionPlan:
     odom_from_world: Rigid3
     lighting_phase: float
     seed: int
+    start_offset_s: float = 0.0
+    """Clock of this session's first frame after session one's (sessions are recorded apart:
+    their stamps never overlap)."""
     ground_truth: Trajectory = field(init=False)
 
 
@@ -181,10 +184,10 @@ class Simulator:
                             self.height, phase=1.3)
             first_pose = Rigid3.from_matrix(second.world_from_body(np.array([0.0]))[0])
             plans.append(SessionPlan("session2", second, frames, first_pose.inverse(), 0.5,
-                                     o.seed + 1000))
+                                     o.seed + 1000, o.frames / self.rate_hz + 60.0))
         for plan in plans:
             times = np.arange(plan.frames) / self.rate_hz
-            plan.ground_truth = Trajectory(self._stamps(times),
+            plan.ground_truth = Trajectory(self._stamps(times + plan.start_offset_s),
                                            plan.motion.world_from_body(times))
         return plans
 
@@ -216,7 +219,8 @@ class Simulator:
         step = 1.0 / (self.rate_hz * o.odom_rate_factor)
         count = (plan.frames - 1) * o.odom_rate_factor + 1
         times = np.arange(count) * step
-        truth = Trajectory(self._stamps(times), plan.motion.world_from_body(times))
+        truth = Trajectory(self._stamps(times + plan.start_offset_s),
+                           plan.motion.world_from_body(times))
         drift = OdometryDriftOptions(o.odom_yaw_drift_deg_per_m, o.odom_scale_error,
                                      seed=plan.seed + 7)
         odom = drift_odometry(truth, drift).world_from_body

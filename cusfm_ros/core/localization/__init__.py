@@ -1,0 +1,1 @@
+"""Localization against a prior map: the map model, absolute pose and the localizer."""

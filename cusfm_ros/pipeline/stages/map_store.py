@@ -1,0 +1,117 @@
+"""Stage ``map``: the finished map as a store for localization and map update ->
+``map/`` (``io/map_store.py``).
+
+``build_prior_map(keyframes, world_from_rig, rig_from_cam, points, features, vocabulary,
+features_section)`` is the stage on explicit inputs (map update builds its merged map with it).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+
+import numpy as np
+import scipy.sparse as sp
+
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.keyframes import KeyframeSet
+from cusfm_ros.core.localization.prior_map import PriorMap
+from cusfm_ros.core.mapping.map_points import MapPoints
+from cusfm_ros.core.retrieval.database import ImageDatabase
+from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
+from cusfm_ros.core.trajectory import Trajectory
+from cusfm_ros.errors import CusfmError
+from cusfm_ros.io.extrinsics_yaml import read_extrinsics
+from cusfm_ros.io.map_points_file import read_map_points
+from cusfm_ros.io.map_store import write_map_store
+from cusfm_ros.io.tum import read_tum
+from cusfm_ros.io.vocabulary_file import load_vocabulary
+from cusfm_ros.pipeline.config import options_as_dict
+from cusfm_ros.pipeline.stage import Stage, StageContext
+from cusfm_ros.pipeline.stages.vocabulary import build_vocabulary
+from cusfm_ros.pipeline.stores import load_keyframes, open_features
+
+logger = logging.getLogger(__name__)
+
+
+def features_section(options) -> dict:
+    """The extractor and matcher a map was built with (queries use the same)."""
+    section = options_as_dict(options.features)
+    for key in ("backend", "model_dir"):
+        section.pop(key, None)
+    return section
+
+
+def refined_keyframes(keyframes: KeyframeSet, world_from_rig: Trajectory,
+                      rig_from_cam: dict[str, Rigid3]) -> KeyframeSet:
+    """The keyframes in image-index order with refined ``world_from_cam`` and extrinsics."""
+    rig = keyframes.rig.with_extrinsics(rig_from_cam)
+    with_rig = KeyframeSet(rig, keyframes.keyframes, keyframes.initial_pose_type,
+                           keyframes.stereo_pairs, keyframes.extra)
+    world_from_cam = with_rig.world_from_cam_under(world_from_rig.stamps_ns,
+                                                   world_from_rig.world_from_body)
+    ordered = [replace(k, world_from_cam=world_from_cam[k.image_name])
+               for k in with_rig.images_in_time_order()]
+    return KeyframeSet(rig, ordered, "REFINED", keyframes.stereo_pairs, keyframes.extra)
+
+
+def build_prior_map(keyframes: KeyframeSet, points: MapPoints, features,
+                    vocabulary: VocabularyTree, features_config: dict) -> PriorMap:
+    """``keyframes`` as ``refined_keyframes`` gives them; ``features`` a store (or anything
+    with ``features(name)``) holding every keyframe's features."""
+    names = [k.image_name for k in keyframes.keyframes]
+    index = {n: i for i, n in enumerate(names)}
+    unknown = set(np.unique(points.obs_image)) - set(index)
+    if unknown:
+        raise CusfmError(f"map points observed in images that are not keyframes "
+                         f"({sorted(unknown)[:3]}); rerun mapping")
+    obs_keyframe = np.array([index[n] for n in points.obs_image], np.int64)
+    order = np.lexsort((points.obs_keypoint, obs_keyframe))
+    offsets = np.searchsorted(obs_keyframe[order], np.arange(len(names) + 1)).astype(np.int64)
+    database = ImageDatabase(vocabulary)
+    descriptors, rows = [], []
+    dim = None
+    for k, name in enumerate(names):
+        f = features.features(name)
+        dim = f.descriptors.shape[1]
+        rows.append(database.bow(f.descriptors))
+        sel = order[offsets[k]:offsets[k + 1]]
+        descriptors.append(f.descriptors[points.obs_keypoint[sel]])
+    obs_descriptor = (np.concatenate(descriptors) if descriptors
+                      else np.zeros((0, dim or vocabulary.dim), np.float32))
+    bow = sp.vstack(rows).tocsr() if rows else sp.csr_matrix((0, vocabulary.num_words))
+    return PriorMap(keyframes, points.points3d_in_world, points.obs_point[order],
+                    points.obs_uv_px[order].astype(np.float32),
+                    obs_descriptor.astype(np.float16), offsets, vocabulary, bow, features_config)
+
+
+class MapStoreStage(Stage):
+    name = "map"
+    reads = ("features", "vocabulary", "seed")
+    inputs = ("keyframes", "features", "mapping_dir")
+    optional_inputs = ("vocabulary",)
+    outputs = ("map_dir",)
+
+    def run(self, context: StageContext) -> dict:
+        run, options = context.run, context.options
+        started = time.perf_counter()
+        if not run.mapping_summary.is_file():
+            raise CusfmError(f"{run.mapping_dir} is incomplete; run the mapping stage first")
+        keyframes = refined_keyframes(load_keyframes(run), read_tum(run.mapping_poses),
+                                      {name: c.rig_from_cam for name, c in
+                                       read_extrinsics(run.mapping_extrinsics).cameras.items()})
+        points = read_map_points(run.mapping_points)
+        with open_features(run, options) as store:
+            if run.vocabulary.is_file():
+                vocabulary = load_vocabulary(run.vocabulary)
+            else:  # the vocabulary stage was skipped: localization still needs one
+                vocabulary, _ = build_vocabulary(
+                    [store.features(k.image_name).descriptors for k in keyframes.keyframes],
+                    options.vocabulary, options.seed)
+            prior_map = build_prior_map(keyframes, points, store, vocabulary,
+                                        features_section(options))
+        manifest = write_map_store(run.map_dir, prior_map)
+        logger.info("map: %s in %.1f s -> %s", manifest["counts"],
+                    time.perf_counter() - started, run.map_dir)
+        return manifest["counts"]
