@@ -3,8 +3,9 @@
     map/map.json          {"format": "cusfm_map/1", "counts", "features", "arrays": {name:
                           {"dtype", "shape"}}} -- written last: its presence means complete
     map/keyframes.json    the keyframes with refined poses, the rig with refined extrinsics
+    map/poses.tum         the refined rig-sample poses, byte for byte as mapping wrote them
     map/<name>.npy        points3d_in_world, obs_point, obs_uv_px, obs_descriptor (float16),
-                          keyframe_offsets, bow_{data,indices,indptr}, vocabulary_{centroids,
+                          keyframe_offsets, sample_world_from_rig (ids in map.json), bow_{data,indices,indptr}, vocabulary_{centroids,
                           children, words, idf, options}
 
 Plain ``.npy`` (no pickle, no compression) so ``np.load(mmap_mode="r")`` maps them: loading
@@ -31,7 +32,9 @@ from cusfm_ros.io.keyframes_file import read_keyframes, write_keyframes
 FORMAT = "cusfm_map/1"
 MANIFEST = "map.json"
 KEYFRAMES = "keyframes.json"
-_ARRAYS = ("points3d_in_world", "obs_point", "obs_uv_px", "obs_descriptor", "keyframe_offsets")
+POSES = "poses.tum"
+_ARRAYS = ("points3d_in_world", "obs_point", "obs_uv_px", "obs_descriptor", "keyframe_offsets",
+           "sample_world_from_rig")
 _VOCABULARY = ("centroids", "children", "words", "idf", "options", "version")
 
 
@@ -43,8 +46,9 @@ def map_dir_of(path: str | os.PathLike) -> Path:
     return path / "map"
 
 
-def write_map_store(path: str | os.PathLike, prior_map: PriorMap) -> dict:
-    """Write ``prior_map`` to ``path`` atomically; returns the manifest."""
+def write_map_store(path: str | os.PathLike, prior_map: PriorMap, poses_tum: str) -> dict:
+    """Write ``prior_map`` to ``path`` atomically, with ``poses_tum`` (the text of its
+    sample poses); returns the manifest."""
     arrays = {name: np.ascontiguousarray(getattr(prior_map, name)) for name in _ARRAYS}
     arrays["obs_descriptor"] = arrays["obs_descriptor"].astype(np.float16)
     bow = prior_map.bow.tocsr()
@@ -59,11 +63,13 @@ def write_map_store(path: str | os.PathLike, prior_map: PriorMap) -> dict:
                    "words": int(prior_map.vocabulary.num_words),
                    "descriptor_dim": prior_map.descriptor_dim},
         "bow_shape": list(bow.shape),
+        "sample_ids": list(prior_map.sample_ids),
         "features": prior_map.features_config,
         "arrays": {k: {"dtype": str(v.dtype), "shape": list(v.shape)} for k, v in arrays.items()},
     }
     with atomic_directory(path) as tmp:
         write_keyframes(tmp / KEYFRAMES, prior_map.keyframes)
+        (tmp / POSES).write_text(poses_tum)
         for name, value in arrays.items():
             np.save(tmp / f"{name}.npy", value, allow_pickle=False)
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
@@ -90,6 +96,10 @@ def read_manifest(path: str | os.PathLike) -> dict:
     return manifest
 
 
+def map_poses_text(path: str | os.PathLike) -> str:
+    return (map_dir_of(path) / POSES).read_text()
+
+
 def read_map_store(path: str | os.PathLike, mmap: bool = True) -> PriorMap:
     """The map at ``path`` (a map directory or a run directory); arrays memory-mapped."""
     directory = map_dir_of(path)
@@ -109,6 +119,7 @@ def read_map_store(path: str | os.PathLike, mmap: bool = True) -> PriorMap:
         {k: loaded[f"vocabulary_{k}"] for k in _VOCABULARY}, str(directory))
     bow = sp.csr_matrix((loaded["bow_data"], loaded["bow_indices"], loaded["bow_indptr"]),
                         shape=tuple(manifest["bow_shape"]))
-    return PriorMap(read_keyframes(directory / KEYFRAMES),
-                    *(loaded[name] for name in _ARRAYS), vocabulary, bow,
-                    manifest.get("features", {}))
+    arrays = {name: loaded[name] for name in _ARRAYS}
+    return PriorMap(read_keyframes(directory / KEYFRAMES), vocabulary=vocabulary, bow=bow,
+                    features_config=manifest.get("features", {}),
+                    sample_ids=list(manifest.get("sample_ids", [])), **arrays)

@@ -38,6 +38,9 @@ class LocalizerOptions:
     """Also match the keyframes taken just before and after the best candidate."""
     enough_correspondences: int = 400
     """Stop matching further candidates once this many 2D-3D correspondences are found."""
+    confident_inliers: int = 60
+    """After the first two candidates, stop matching further ones as soon as a pose has this
+    many inliers (0: always match every candidate). Matching dominates a query's time."""
     prior_radius_m: float = 10.0
     """With a pose prior and no radius: candidates are the keyframes this close to it."""
     min_bow_score: float = 0.0
@@ -171,6 +174,16 @@ class Localizer:
                     chosen.insert(1, int(extra))
         return chosen
 
+    def _views(self, queries: list[QueryImage], features: list[Features], best: list
+               ) -> tuple[list[CameraCorrespondences], list[np.ndarray]]:
+        views, sources = [], []
+        for q, f, (_, point, source) in zip(queries, features, best):
+            keep = point >= 0
+            views.append(CameraCorrespondences(q.camera, q.rig_from_cam, f.keypoints_px[keep],
+                                               self.map.points3d_in_world[point[keep]]))
+            sources.append(source[keep])
+        return views, sources
+
     def _localize(self, queries: list[QueryImage], prior: Rigid3 | None,
                   prior_radius_m: float | None) -> LocalizationResult:
         if not queries:
@@ -186,33 +199,40 @@ class Localizer:
                     "built with")
         radius = prior_radius_m or self.options.prior_radius_m
         candidates = self._candidates([f.descriptors for f in features], prior, radius)
-        views, sources = [], []
-        names = [self.map.keyframes.keyframes[k].image_name for k in candidates]
-        for q, f in zip(queries, features):
-            best_conf = np.full(len(f), -1.0)
-            best_point = np.full(len(f), -1, np.int64)
-            best_source = np.full(len(f), -1, np.int64)
-            for c, k in enumerate(candidates):
-                map_features, point_ids = self.map.keyframe_features(k)
+        best = [(np.full(len(f), -1.0), np.full(len(f), -1, np.int64),
+                 np.full(len(f), -1, np.int64)) for f in features]
+        pose, matched = None, 0
+        for c, k in enumerate(candidates):
+            matched = c + 1
+            map_features, point_ids = self.map.keyframe_features(k)
+            for f, (conf, point, source) in zip(features, best):
                 if len(map_features) == 0 or len(f) == 0:
                     continue
                 matches = self.matcher.match(f, map_features)
                 if len(matches) == 0:
                     continue
                 qi, mi = matches.indices[:, 0], matches.indices[:, 1]
-                better = matches.confidences > best_conf[qi]
-                best_conf[qi[better]] = matches.confidences[better]
-                best_point[qi[better]] = point_ids[mi[better]]
-                best_source[qi[better]] = c
-                if (best_point >= 0).sum() >= self.options.enough_correspondences:
+                better = matches.confidences > conf[qi]
+                conf[qi[better]] = matches.confidences[better]
+                point[qi[better]] = point_ids[mi[better]]
+                source[qi[better]] = c
+            found = sum(int((b[1] >= 0).sum()) for b in best)
+            if found >= self.options.enough_correspondences or c == len(candidates) - 1:
+                break
+            confident = self.options.confident_inliers
+            if confident and c >= 1 and found >= confident:
+                try:
+                    pose = self.solver.solve(self._views(queries, features, best)[0])
+                except LocalizationError:
+                    pose = None
+                if pose is not None and pose.num_inliers >= confident:
                     break
-            keep = best_point >= 0
-            views.append(CameraCorrespondences(
-                q.camera, q.rig_from_cam, f.keypoints_px[keep],
-                self.map.points3d_in_world[best_point[keep]]))
-            sources.append(best_source[keep])
+                pose = None
+        names = [self.map.keyframes.keyframes[k].image_name for k in candidates[:matched]]
+        views, sources = self._views(queries, features, best)
         found = sum(len(v) for v in views)
-        pose = self.solver.solve(views)
+        if pose is None:
+            pose = self.solver.solve(views)
         inlier_keyframes: dict[str, int] = {}
         for mask, source in zip(pose.inliers, sources):
             for c, count in zip(*np.unique(source[mask], return_counts=True)):

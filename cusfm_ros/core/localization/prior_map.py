@@ -39,7 +39,12 @@ class PriorMap:
     bow: sp.csr_matrix
     """(K, W) L2-normalized TF-IDF vector of each keyframe (all its keypoints)."""
     features_config: dict = field(default_factory=dict)
-    """Extractor and matcher fingerprints the map was built with (queries must match)."""
+    """The ``features`` options the map was built with (queries use the same)."""
+    sample_ids: list[str] = field(default_factory=list)
+    """Rig samples in time order (``KeyframeSet.sample_poses``) ..."""
+    sample_world_from_rig: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    """... and their refined poses (S, 4, 4), exactly as mapping wrote them (map update in
+    fixed mode hands them on bit for bit)."""
     world_from_cam: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -52,6 +57,10 @@ class PriorMap:
         if not (len(self.obs_uv_px) == len(self.obs_descriptor) == m
                 and int(self.keyframe_offsets[-1]) == m):
             raise LocalizationError("map: observation arrays differ in length; rebuild the map")
+        ids, _, _ = self.keyframes.sample_poses() if k else ([], None, None)
+        if list(self.sample_ids) != list(ids) or len(self.sample_world_from_rig) != len(ids):
+            raise LocalizationError("map: the rig-sample poses do not match the keyframes; "
+                                    "rebuild the map")
         self.world_from_cam = np.stack([kf.world_from_cam.matrix()
                                         for kf in self.keyframes.keyframes]) if k else \
             np.zeros((0, 4, 4))

@@ -70,9 +70,11 @@ def build_pose_structure(keyframes: KeyframeSet, start_world_from_rig: np.ndarra
                          measured_world_from_rig: np.ndarray, frame_type: str,
                          bundle: BundleOptions = BundleOptions(),
                          fixed_samples: tuple[str, ...] = (),
-                         optimize_extrinsics: bool = False) -> PoseStructure:
-    """Nodes, sequential factors (relative motion of ``measured_world_from_rig``), rigid
-    factors (camera frame type) and fixed nodes; poses are per rig sample in time order."""
+                         optimize_extrinsics: bool = False,
+                         session_starts: tuple[str, ...] = ()) -> PoseStructure:
+    """Nodes, sequential factors (relative motion of ``measured_world_from_rig``; none into a
+    sample of ``session_starts``), rigid factors (camera frame type) and fixed nodes; poses
+    are per rig sample in time order."""
     if frame_type not in FRAME_TYPES:
         raise ConfigError(f"frame type must be rig or camera, got {frame_type!r}")
     rig = keyframes.rig
@@ -87,11 +89,17 @@ def build_pose_structure(keyframes: KeyframeSet, start_world_from_rig: np.ndarra
     unknown = sorted(set(fixed_samples) - set(position))
     if unknown:
         raise ConfigError(f"mapping.fixed_samples names unknown rig samples {unknown[:5]}")
+    unknown = sorted(set(session_starts) - set(position))
+    if unknown:
+        raise ConfigError(f"mapping.session_starts names unknown rig samples {unknown[:5]}")
     fixed = np.array([position[s] for s in fixed_samples], np.int64)
+    starts = np.zeros(len(sample_ids), bool)
+    starts[[position[s] for s in session_starts]] = True
     b = bundle
     if frame_type == "rig":
-        sequential = _relative(np.arange(len(sample_ids) - 1), np.arange(1, len(sample_ids)),
-                               measured, b.relative_sigma_m, b.relative_sigma_deg)
+        later = np.nonzero(~starts[1:])[0] + 1
+        sequential = _relative(later - 1, later, measured, b.relative_sigma_m,
+                               b.relative_sigma_deg)
         template = empty_template(start, rig_from_cam, image_sample, image_camera,
                                   sequential, fixed, optimize_extrinsics)
         node_stamps = sample_stamps
@@ -103,7 +111,8 @@ def build_pose_structure(keyframes: KeyframeSet, start_world_from_rig: np.ndarra
         for c in range(len(cameras)):
             chain = np.nonzero(image_camera == c)[0]
             if len(chain) > 1:
-                factors.append(_relative(chain[:-1], chain[1:], input_cam,
+                linked = ~starts[image_sample[chain[1:]]]
+                factors.append(_relative(chain[:-1][linked], chain[1:][linked], input_cam,
                                          b.relative_sigma_m, b.relative_sigma_deg))
                 next_node[chain[:-1]] = chain[1:]
                 next_node[chain[-1]] = chain[-2]

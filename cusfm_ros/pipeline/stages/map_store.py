@@ -56,10 +56,13 @@ def refined_keyframes(keyframes: KeyframeSet, world_from_rig: Trajectory,
     return KeyframeSet(rig, ordered, "REFINED", keyframes.stereo_pairs, keyframes.extra)
 
 
-def build_prior_map(keyframes: KeyframeSet, points: MapPoints, features,
-                    vocabulary: VocabularyTree, features_config: dict) -> PriorMap:
+def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: MapPoints,
+                    features, vocabulary: VocabularyTree, features_config: dict,
+                    bow_rows: dict | None = None) -> PriorMap:
     """``keyframes`` as ``refined_keyframes`` gives them; ``features`` a store (or anything
-    with ``features(name)``) holding every keyframe's features."""
+    with ``features(name)``) holding every keyframe's features; ``bow_rows`` keeps the
+    bag-of-words vectors of images already in a map (map update: an old keyframe's stored
+    features are only those that observe points)."""
     names = [k.image_name for k in keyframes.keyframes]
     index = {n: i for i, n in enumerate(names)}
     unknown = set(np.unique(points.obs_image)) - set(index)
@@ -75,15 +78,21 @@ def build_prior_map(keyframes: KeyframeSet, points: MapPoints, features,
     for k, name in enumerate(names):
         f = features.features(name)
         dim = f.descriptors.shape[1]
-        rows.append(database.bow(f.descriptors))
+        rows.append(bow_rows[name] if bow_rows and name in bow_rows
+                    else database.bow(f.descriptors))
         sel = order[offsets[k]:offsets[k + 1]]
         descriptors.append(f.descriptors[points.obs_keypoint[sel]])
     obs_descriptor = (np.concatenate(descriptors) if descriptors
                       else np.zeros((0, dim or vocabulary.dim), np.float32))
     bow = sp.vstack(rows).tocsr() if rows else sp.csr_matrix((0, vocabulary.num_words))
+    sample_ids, stamps, _ = keyframes.sample_poses()
+    if not np.array_equal(stamps, world_from_rig.stamps_ns):
+        raise CusfmError("the refined poses do not match the keyframes' rig samples; rerun "
+                         "mapping")
     return PriorMap(keyframes, points.points3d_in_world, points.obs_point[order],
                     points.obs_uv_px[order].astype(np.float32),
-                    obs_descriptor.astype(np.float16), offsets, vocabulary, bow, features_config)
+                    obs_descriptor.astype(np.float16), offsets, vocabulary, bow, features_config,
+                    sample_ids, np.array(world_from_rig.world_from_body))
 
 
 class MapStoreStage(Stage):
@@ -98,7 +107,8 @@ class MapStoreStage(Stage):
         started = time.perf_counter()
         if not run.mapping_summary.is_file():
             raise CusfmError(f"{run.mapping_dir} is incomplete; run the mapping stage first")
-        keyframes = refined_keyframes(load_keyframes(run), read_tum(run.mapping_poses),
+        world_from_rig = read_tum(run.mapping_poses)
+        keyframes = refined_keyframes(load_keyframes(run), world_from_rig,
                                       {name: c.rig_from_cam for name, c in
                                        read_extrinsics(run.mapping_extrinsics).cameras.items()})
         points = read_map_points(run.mapping_points)
@@ -109,9 +119,9 @@ class MapStoreStage(Stage):
                 vocabulary, _ = build_vocabulary(
                     [store.features(k.image_name).descriptors for k in keyframes.keyframes],
                     options.vocabulary, options.seed)
-            prior_map = build_prior_map(keyframes, points, store, vocabulary,
+            prior_map = build_prior_map(keyframes, world_from_rig, points, store, vocabulary,
                                         features_section(options))
-        manifest = write_map_store(run.map_dir, prior_map)
+        manifest = write_map_store(run.map_dir, prior_map, run.mapping_poses.read_text())
         logger.info("map: %s in %.1f s -> %s", manifest["counts"],
                     time.perf_counter() - started, run.map_dir)
         return manifest["counts"]

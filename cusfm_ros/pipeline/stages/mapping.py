@@ -53,6 +53,9 @@ class MappingStageOptions:
     ``pose_graph`` (its result; for noisy priors mapped with visual sequential edges)."""
     fixed_samples: tuple[str, ...] = ()
     """Rig sample ids held at their initial pose (map update: the existing map's samples)."""
+    session_starts: tuple[str, ...] = ()
+    """Rig sample ids that begin a new recording session: no sequential factor links them to
+    the sample before (map update merges sessions recorded apart)."""
     max_pose_change_m: float = 50.0
     """A refined pose further than this from its start is reported as suspicious."""
     max_odometry_scale_change: float = 0.1
@@ -97,7 +100,7 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
                           "rig's)")
     structure = build_pose_structure(keyframes, start_world_from_rig, measured_world_from_rig,
                                      frame_type, bundle, options.fixed_samples,
-                                     options.optimize_extrinsics)
+                                     options.optimize_extrinsics, options.session_starts)
     index = {k.image_name: i for i, k in enumerate(structure.images)}
     observations = build_observations(
         keyframes, structure, [keypoints_px[k.image_name] for k in structure.images],
