@@ -5,8 +5,9 @@
     map/keyframes.json    the keyframes with refined poses, the rig with refined extrinsics
     map/poses.tum         the refined rig-sample poses, byte for byte as mapping wrote them
     map/<name>.npy        points3d_in_world, obs_point, obs_uv_px, obs_descriptor (float16),
-                          keyframe_offsets, sample_world_from_rig (ids in map.json), bow_{data,indices,indptr}, vocabulary_{centroids,
-                          children, words, idf, options}
+                          keyframe_offsets, sample_world_from_rig (ids in map.json),
+                          bow_{data,indices,indptr}, vocabulary_{centroids, children,
+                          words, idf, options}
 
 Plain ``.npy`` (no pickle, no compression) so ``np.load(mmap_mode="r")`` maps them: loading
 reads the JSON and the small arrays only; a 1,000-keyframe map opens in milliseconds. The

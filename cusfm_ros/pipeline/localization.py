@@ -10,7 +10,6 @@ import logging
 import os
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 

@@ -92,7 +92,10 @@ class _MemoryMatches:
         self._pairs[(a, b)] = matches
 
     def matches(self, a: str, b: str) -> Matches:
-        return self._pairs[(a, b)]
+        if (a, b) in self._pairs:
+            return self._pairs[(a, b)]
+        swapped = self._pairs[(b, a)]
+        return Matches(swapped.indices[:, ::-1].copy(), swapped.confidences)
 
 
 class _MergedFeatures:
@@ -162,6 +165,7 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
     localizer = Localizer(prior, None, matcher, LocalizerOptions(seed=options.seed))
     samples = new_keyframes.samples()
     localized, results = {}, {}
+    raw = _MemoryMatches()  # the localizer's matches: the cross pairs reuse them
     tick = time.perf_counter()
     with open_features(session, options) as store:
         progress = Progress("map update: localize", len(new_ids), "samples")
@@ -169,7 +173,10 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
             queries = [QueryImage(None, new_keyframes.rig[k.camera_name].camera,
                                   new_keyframes.rig[k.camera_name].rig_from_cam, k.image_name,
                                   store.features(k.image_name)) for k in samples[sample_id]]
-            result = localizer.localize(queries)
+            result = localizer.localize(queries, keep_matches=True)
+            for (a, b), matches in result.raw_matches.items():
+                raw.put_matches(a, b, matches)
+            result.raw_matches = {}
             results[sample_id] = result
             if result.success:
                 localized[i] = result.map_from_base_link.matrix()
@@ -232,7 +239,7 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
         cross_store = _MemoryMatches()
         tick = time.perf_counter()
         cross_counts = match_pairs(cross, cameras, features, matcher, options.matching,
-                                   options.seed, cross_store)
+                                   options.seed, cross_store, cache=raw)
         timings["cross_matching_s"] = time.perf_counter() - tick
         pair_matches += [(a, b, cross_store.matches(a, b)) for a, b in cross]
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cusfm_ros.core.cameras import CameraBase
-from cusfm_ros.core.features.types import Features
+from cusfm_ros.core.features.types import Features, Matches
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.localization.absolute_pose import (AbsolutePoseOptions, AbsolutePoseSolver,
                                                        CameraCorrespondences)
@@ -82,6 +82,9 @@ class LocalizationResult:
     """Keyframe images matched, best first."""
     inlier_keyframes: dict[str, int] = field(default_factory=dict)
     """Inlier correspondences per candidate keyframe image (map update pairs from these)."""
+    raw_matches: dict[tuple[str, str], Matches] = field(default_factory=dict)
+    """With ``keep_matches``: the matcher's output per (query image, keyframe image), indices
+    into the query's features and the keyframe's map features (map update reuses them)."""
 
     def as_dict(self) -> dict:
         pose = self.map_from_cam
@@ -122,12 +125,13 @@ class Localizer:
 
     # -------------------------------------------------------------------------- queries
     def localize(self, queries: list[QueryImage], prior: Rigid3 | None = None,
-                 prior_radius_m: float | None = None) -> LocalizationResult:
+                 prior_radius_m: float | None = None, keep_matches: bool = False
+                 ) -> LocalizationResult:
         """Localize one rig sample (one or several images). Never raises for a query that
         cannot be localized: the result says why."""
         started = time.perf_counter()
         try:
-            result = self._localize(queries, prior, prior_radius_m)
+            result = self._localize(queries, prior, prior_radius_m, keep_matches)
         except CusfmError as exc:
             result = LocalizationResult(False, str(exc))
         result.seconds = time.perf_counter() - started
@@ -185,7 +189,8 @@ class Localizer:
         return views, sources
 
     def _localize(self, queries: list[QueryImage], prior: Rigid3 | None,
-                  prior_radius_m: float | None) -> LocalizationResult:
+                  prior_radius_m: float | None, keep_matches: bool = False
+                  ) -> LocalizationResult:
         if not queries:
             raise LocalizationError("a query needs at least one image")
         if self.map.num_keyframes == 0 or len(self.map) == 0:
@@ -201,14 +206,16 @@ class Localizer:
         candidates = self._candidates([f.descriptors for f in features], prior, radius)
         best = [(np.full(len(f), -1.0), np.full(len(f), -1, np.int64),
                  np.full(len(f), -1, np.int64)) for f in features]
-        pose, matched = None, 0
+        pose, matched, raw = None, 0, {}
         for c, k in enumerate(candidates):
             matched = c + 1
             map_features, point_ids = self.map.keyframe_features(k)
-            for f, (conf, point, source) in zip(features, best):
+            for q, f, (conf, point, source) in zip(queries, features, best):
                 if len(map_features) == 0 or len(f) == 0:
                     continue
                 matches = self.matcher.match(f, map_features)
+                if keep_matches:
+                    raw[(q.name, self.map.keyframes.keyframes[k].image_name)] = matches
                 if len(matches) == 0:
                     continue
                 qi, mi = matches.indices[:, 0], matches.indices[:, 1]
@@ -241,4 +248,4 @@ class Localizer:
         return LocalizationResult(
             True, f"localized with {pose.num_inliers} inliers of {found} correspondences",
             pose.world_from_rig, map_from_cam, pose.num_inliers, found, pose.mean_error_px,
-            pose.covariance, 0.0, names, inlier_keyframes)
+            pose.covariance, 0.0, names, inlier_keyframes, raw)

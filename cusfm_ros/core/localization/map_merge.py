@@ -47,13 +47,17 @@ def align_session(session_world_from_rig: np.ndarray, localized: dict[int, np.nd
         raise MappingError(f"the localized samples disagree: at most {len(best_inliers)} of "
                            f"{len(index)} fit one placement of the new session within "
                            f"{max_error_m} m")
-    if len(best_inliers) >= 3:
-        try:
-            sim = umeyama_alignment(session[best_inliers, :3, 3], target[best_inliers, :3, 3])
-            best = np.eye(4)
-            best[:3, :3], best[:3, 3] = sim.rotation, sim.translation
-        except Exception:  # collinear positions (a straight drive): keep the proposal
-            pass
+    # least squares over positions and orientations: each sample adds its origin and the tips
+    # of its axes (1 m), so a planar or straight drive still fixes every rotation axis
+    axes = np.concatenate([np.zeros((1, 3)), np.eye(3)])
+
+    def markers(poses: np.ndarray) -> np.ndarray:
+        return (poses[:, None, :3, :3] @ axes[None, :, :, None])[..., 0].reshape(-1, 3) + \
+            np.repeat(poses[:, :3, 3], 4, axis=0)
+
+    sim = umeyama_alignment(markers(session[best_inliers]), markers(target[best_inliers]))
+    best = np.eye(4)
+    best[:3, :3], best[:3, 3] = sim.rotation, sim.translation
     moved = best[:3, :3] @ session[best_inliers, :3, 3].T + best[:3, 3:4]
     rms = float(np.sqrt(np.mean(np.sum((moved.T - target[best_inliers, :3, 3]) ** 2, axis=1))))
     return SessionAlignment(Rigid3.from_matrix(best), index[best_inliers], rms)

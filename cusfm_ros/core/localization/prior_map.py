@@ -48,6 +48,8 @@ class PriorMap:
     world_from_cam: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        if self.bow.dtype != np.float32:
+            self.bow = sp.csr_matrix(self.bow, dtype=np.float32)
         k = len(self.keyframes.keyframes)
         if len(self.keyframe_offsets) != k + 1 or self.bow.shape[0] != k:
             raise LocalizationError(f"map: {k} keyframes but {len(self.keyframe_offsets) - 1} "
