@@ -16,7 +16,6 @@ import yaml
 
 from cusfm_ros.cli.main import main
 from cusfm_ros.core.evaluation import absolute_trajectory_error
-from cusfm_ros.core.features.types import Features
 from cusfm_ros.core.geometry import Rigid3, umeyama_alignment
 from cusfm_ros.core.keyframes import Keyframe, KeyframeSet
 from cusfm_ros.core.localization.absolute_pose import (AbsolutePoseOptions, AbsolutePoseSolver,
@@ -301,9 +300,8 @@ def _query_image(sim, tmp_path, index=17):
 
     with BagReader(sim / "bag_session2") as bag:
         cameras = scan_cameras(bag)
-        for i, (sample, images) in enumerate(iter_rig_samples(bag, cameras)):
-            if i == index:
-                break
+        sample, images = next(x for i, x in enumerate(iter_rig_samples(bag, cameras))
+                              if i == index)
     name = sorted(images)[0]
     camera = cameras.cameras[name]
     image_path = tmp_path / "query.png"
