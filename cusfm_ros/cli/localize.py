@@ -16,7 +16,8 @@ from cusfm_ros.errors import ConfigError
 from cusfm_ros.io.camera_yaml import read_camera_yaml
 from cusfm_ros.io.tum import read_tum
 from cusfm_ros.pipeline.components import BACKENDS, DEVICES
-from cusfm_ros.pipeline.localization import load_localizer, localize_bag
+from cusfm_ros.pipeline.localization import load_localizer
+from cusfm_ros.pipeline.localize_bag import localize_bag
 from cusfm_ros.pipeline.stages.features import read_image
 
 
