@@ -45,6 +45,24 @@ def _nearest_two(a: np.ndarray, b: np.ndarray, batch: int) -> tuple[np.ndarray, 
     return indices, dists
 
 
+def _dense_nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One distance matrix for both directions (when it fits): each row's nearest and
+    second-nearest squared distance, and each column's nearest row."""
+    d = (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2.0 * a @ b.T
+    np.maximum(d, 0, out=d)
+    rows = np.arange(len(a))
+    first = d.argmin(1)
+    best = d[rows, first]
+    col_best = d.argmin(0)
+    d[rows, first] = np.inf
+    second = d.min(1) if d.shape[1] > 1 else np.full(len(a), np.inf, np.float32)
+    return np.stack([first, np.zeros_like(first)], 1), np.stack([best, second], 1), col_best
+
+
+DENSE_LIMIT = 16_000_000
+"""Distance matrices up to this many entries (64 MB) are computed once for both directions."""
+
+
 class KnnMatcher:
     name = "knn"
 
@@ -64,14 +82,19 @@ class KnnMatcher:
             d0 = d0 / np.maximum(np.linalg.norm(d0, axis=1, keepdims=True), 1e-12)
             d1 = d1 / np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-12)
         d0, d1 = d0.astype(np.float32), d1.astype(np.float32)
-        nn01, dist01 = _nearest_two(d0, d1, self.options.batch_size)
+        dense = len(d0) * len(d1) <= DENSE_LIMIT
+        if dense:
+            nn01, dist01, col_best = _dense_nearest(d0, d1)
+        else:
+            nn01, dist01 = _nearest_two(d0, d1, self.options.batch_size)
         best = nn01[:, 0]
         keep = np.ones(len(d0), bool)
         if self.options.ratio < 1 and len(d1) > 1:
             keep &= np.sqrt(dist01[:, 0]) < self.options.ratio * np.sqrt(dist01[:, 1])
         if self.options.mutual:
-            nn10, _ = _nearest_two(d1, d0, self.options.batch_size)
-            keep &= nn10[best, 0] == np.arange(len(d0))
+            if not dense:
+                col_best = _nearest_two(d1, d0, self.options.batch_size)[0][:, 0]
+            keep &= col_best[best] == np.arange(len(d0))
         index0 = np.nonzero(keep)[0]
         distance = np.sqrt(dist01[index0, 0])
         # a similarity in [0, 1] for unit descriptors (distance 0 -> 1, distance 2 -> 0)

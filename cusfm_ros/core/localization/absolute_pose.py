@@ -4,8 +4,9 @@ One camera: OpenCV's USAC (MAGSAC++ scoring, P3P minimal solver) on normalized c
 every camera model (distortion, fisheye) goes through its own ``unproject``. A rig (several
 synchronized cameras with known ``rig_from_cam``): each camera's USAC hypothesis is scored on
 the correspondences of *all* cameras (a generalized consensus; OpenCV has no generalized P3P),
-the best one seeds the joint refinement. Refinement: robust (Huber) least squares on pixel
-reprojection errors through the camera models (scipy), over one 6-DoF ``world_from_rig``.
+the best one seeds the joint refinement. Refinement: robust (Huber, iteratively reweighted)
+Gauss-Newton on pixel reprojection errors through the camera models, over one 6-DoF
+``world_from_rig``.
 
 Covariance: Gauss-Newton ``sigma^2 (J^T J)^-1`` at the solution, ``sigma^2`` estimated from
 the inlier residuals, in ROS order ``(x, y, z, rot_x, rot_y, rot_z)``: translation in the map
@@ -19,7 +20,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from cusfm_ros.core.cameras import CameraBase
@@ -37,7 +37,7 @@ class AbsolutePoseOptions:
     """Fewer inliers than this: the query fails (the pose would be a guess)."""
     refine: bool = True
     huber_px: float = 1.5
-    refine_iterations: int = 50
+    refine_iterations: int = 10
 
     def __post_init__(self) -> None:
         if self.ransac_threshold_px <= 0 or self.huber_px <= 0:
@@ -162,39 +162,68 @@ class AbsolutePoseSolver:
 
     def _refine(self, views: list[CameraCorrespondences], inliers: list[np.ndarray],
                 start: Rigid3) -> tuple[Rigid3, np.ndarray]:
-        """Huber least squares over (dt, dr) about ``start``; returns the pose and its
-        covariance."""
+        """Huber-weighted Gauss-Newton (IRLS) over (dt, dr), re-linearized about the current
+        pose; returns the pose and its covariance.
+
+        Written out rather than handed to ``scipy.optimize.least_squares``: its numeric
+        Jacobian re-evaluates the whole residual seven times per iteration (75 ms a query on
+        KITTI); here the pose part of the Jacobian is analytic and only the camera model's
+        2x3 projection derivative is numeric (any model, three projections per iteration).
+        """
         o = self.options
-        rotation0, translation0 = start.rotation, start.translation
         used = [(v, m) for v, m in zip(views, inliers) if m.any()]
-
-        def pose_of(x: np.ndarray) -> Rigid3:
-            rotation = Rotation.from_rotvec(x[3:]).as_matrix() @ rotation0
-            return Rigid3(rotation, translation0 + x[:3])
-
-        def residuals(x: np.ndarray) -> np.ndarray:
-            world_from_rig = pose_of(x)
-            out = []
+        pose = start
+        hessian = np.zeros((6, 6))
+        residual2 = []
+        for _ in range(o.refine_iterations):
+            hessian, gradient, residual2 = np.zeros((6, 6)), np.zeros(6), []
             for view, mask in used:
-                cam_from_world = (world_from_rig * view.rig_from_cam).inverse()
-                points = cam_from_world.transform_points(view.points3d_in_world[mask])
-                uv, valid = view.camera.project(points)
+                points = view.points3d_in_world[mask]
+                world_from_cam = pose * view.rig_from_cam
+                rotation_wc = world_from_cam.rotation
+                in_cam = (points - world_from_cam.translation) @ rotation_wc
+                uv, valid = view.camera.project(in_cam)
                 r = uv - view.uv_px[mask]
-                # a point that leaves the image's field of view keeps a bounded residual
-                r[~valid | ~np.isfinite(r).all(axis=1)] = 10 * o.ransac_threshold_px
-                out.append(r.ravel())
-            return np.concatenate(out)
-
-        solution = least_squares(residuals, np.zeros(6), method="trf", loss="huber",
-                                 f_scale=o.huber_px, max_nfev=o.refine_iterations * 7,
-                                 x_scale="jac")
-        pose = pose_of(solution.x)
-        r = solution.fun
-        dof = max(len(r) - 6, 1)
-        sigma2 = float(np.sum(np.minimum(r ** 2, (3 * o.huber_px) ** 2)) / dof)
-        jac = solution.jac
+                jac_cam = np.zeros((len(points), 2, 3))
+                step = 1e-5 * np.maximum(np.abs(in_cam[:, 2]), 1e-3)
+                for axis in range(3):
+                    delta = np.zeros_like(in_cam)
+                    delta[:, axis] = step
+                    plus, ok_p = view.camera.project(in_cam + delta)
+                    minus, ok_m = view.camera.project(in_cam - delta)
+                    jac_cam[:, :, axis] = (plus - minus) / (2 * step[:, None])
+                    valid &= ok_p & ok_m
+                valid &= np.isfinite(r).all(axis=1) & np.isfinite(jac_cam).all(axis=(1, 2))
+                if not valid.any():
+                    continue
+                r, jac_cam = r[valid], jac_cam[valid]
+                lever = points[valid] - pose.translation
+                # d in_cam / d(dt, dr) = R_wc^T [-I, [X - t_wr]x]
+                skew = np.zeros((len(lever), 3, 3))
+                skew[:, 0, 1], skew[:, 0, 2] = -lever[:, 2], lever[:, 1]
+                skew[:, 1, 0], skew[:, 1, 2] = lever[:, 2], -lever[:, 0]
+                skew[:, 2, 0], skew[:, 2, 1] = -lever[:, 1], lever[:, 0]
+                d_pose = np.concatenate([np.broadcast_to(-rotation_wc.T, skew.shape),
+                                         rotation_wc.T @ skew], axis=2)
+                jac = jac_cam @ d_pose  # (n, 2, 6)
+                norm = np.linalg.norm(r, axis=1)
+                weight = np.where(norm <= o.huber_px, 1.0, o.huber_px / np.maximum(norm, 1e-12))
+                hessian += np.einsum("n,nki,nkj->ij", weight, jac, jac)
+                gradient += np.einsum("n,nki,nk->i", weight, jac, r)
+                residual2.append(np.minimum(norm ** 2, (3 * o.huber_px) ** 2))
+            try:
+                step6 = -np.linalg.solve(hessian, gradient)
+            except np.linalg.LinAlgError:
+                break
+            pose = Rigid3(Rotation.from_rotvec(step6[3:]).as_matrix() @ pose.rotation,
+                          pose.translation + step6[:3])
+            if np.linalg.norm(step6) < 1e-9:
+                break
+        count = sum(len(x) for x in residual2)
+        sigma2 = float(np.sum(np.concatenate(residual2)) / max(2 * count - 6, 1)) \
+            if residual2 else float("nan")
         try:
-            covariance = sigma2 * np.linalg.inv(jac.T @ jac)
+            covariance = sigma2 * np.linalg.inv(hessian)
         except np.linalg.LinAlgError:
             covariance = np.full((6, 6), np.nan)
         return pose, 0.5 * (covariance + covariance.T)
