@@ -29,6 +29,7 @@ from cusfm_ros.core.rig import Rig, RigCamera
 from cusfm_ros.errors import FormatError, LocalizationError
 from cusfm_ros.io.map_store import read_map_store, write_map_store
 from cusfm_ros.io.tum import format_tum, read_tum
+from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.sim.rigs import make_camera
 
 
@@ -413,6 +414,19 @@ def test_concurrent_queries_answer_as_serial_ones(mapped):
         assert np.array_equal(a.map_from_base_link.matrix(), b.map_from_base_link.matrix())
 
 
+def _results_path(run) -> Trajectory:
+    """The refined path in RUN_DIR/results.mcap."""
+    from mcap.reader import make_reader
+
+    from cusfm_ros.io.bags.messages import typestore
+    from cusfm_ros.io.ros_conversions import trajectory_from_path
+
+    with open(run / "results.mcap", "rb") as handle:
+        for schema, _, message in make_reader(handle).iter_messages(topics=["/cusfm/path"]):
+            return trajectory_from_path(typestore().deserialize_cdr(message.data, schema.name))
+    raise AssertionError("no /cusfm/path in results.mcap")
+
+
 def _ate(truth_path, estimate_path) -> float:
     return absolute_trajectory_error(read_tum(truth_path), read_tum(estimate_path)).rmse
 
@@ -441,8 +455,9 @@ def test_map_update_fixed_keeps_the_map_and_adjust_improves_both_sessions(mapped
     assert np.array_equal(merged.sample_world_from_rig[index], old.sample_world_from_rig)
     assert len(merged) > len(old) and merged.num_keyframes == 2 * old.num_keyframes
     assert len(read_tum(fixed / "poses.tum")) == 120
-    for path in ("extrinsics.yaml", "points.ply", "sparse/images.txt"):
+    for path in ("extrinsics.yaml", "points.ply", "sparse/images.txt", "results.mcap"):
         assert (fixed / path).is_file(), path
+    assert len(_results_path(fixed)) == 120 and len(_results_path(run)) == 60
     assert main(["map-update", str(run), str(sim / "bag_session2"), "--out", str(adjust),
                  "--mode", "adjust", "--min-translation-m", "0.3"]) == 0
     truth1, truth2 = sim / "ground_truth.tum", sim / "ground_truth_session2.tum"

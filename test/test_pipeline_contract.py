@@ -279,7 +279,7 @@ def test_registry_drives_options_steps_and_cli():
     from cusfm_ros.pipeline.registry import STAGE_NAMES, STAGES
 
     assert STAGE_NAMES == ("keyframes", "features", "vocabulary", "loops", "pose_graph",
-                           "pairs", "matching", "mapping", "export")
+                           "pairs", "matching", "mapping", "export", "map")
     owned = {name for stage in STAGES for name in stage.sections}
     assert owned == set(SECTIONS)
     fields = {f for f in MapperOptions.__dataclass_fields__}

@@ -131,7 +131,7 @@ def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
     assert main(args) == 0
     report = json.loads((run / "report.json").read_text())
     assert set(report["stages"]) == {"keyframes", "features", "vocabulary", "loops", "pairs",
-                                     "pose_graph", "matching", "mapping", "export"}
+                                     "pose_graph", "matching", "mapping", "export", "map"}
     loops = json.loads((run / "loops" / "loops.json").read_text())["loops"]
     assert {"query", "match", "query_stamp_ns", "match_stamp_ns", "inliers", "score"} <= set(
         loops[0])

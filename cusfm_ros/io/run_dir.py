@@ -15,7 +15,8 @@ No stage spells a path literal; each asks its ``RunDir``. Layout:
     mapping/              poses.tum, extrinsics.yaml, points.npz, summary.json
     map/                  the map store for localization and map update (io/map_store.py)
     stages/<stage>.json   the runner's record of each stage (status, fingerprint, counts)
-    initial_poses.tum, poses.tum, extrinsics.yaml, sparse/, points.ply, report.json
+    initial_poses.tum, poses.tum, extrinsics.yaml, sparse/, points.ply, results.mcap,
+    report.json
 """
 
 from __future__ import annotations
@@ -135,6 +136,10 @@ class RunDir:
     @property
     def points_ply(self) -> Path:
         return self.root / "points.ply"
+
+    @property
+    def results_bag(self) -> Path:
+        return self.root / "results.mcap"
 
     @property
     def report(self) -> Path:

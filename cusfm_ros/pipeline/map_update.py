@@ -12,6 +12,7 @@
    the old map's relative poses as priors, the old map's first pose holding the gauge.
 5. Outputs as ``cusfm map`` writes them, for both sessions: ``poses.tum``,
    ``sessions/{map,new}/poses.tum``, ``extrinsics.yaml``, ``points.ply``, ``sparse/``,
+   ``results.mcap``,
    ``map/`` (a map store, so a third drive can be added), ``report.json``.
 
 MAP_DIR is only read.
@@ -44,6 +45,7 @@ from cusfm_ros.io.map_store import (map_dir_of, map_poses_text, read_map_store,
                                    write_map_store)
 from cusfm_ros.io.pairs_file import read_pairs
 from cusfm_ros.io.ply import write_ply
+from cusfm_ros.io.results_bag import write_results_bag
 from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.io.tum import format_tum, read_tum
 from cusfm_ros.pipeline.components import make_matcher
@@ -326,6 +328,9 @@ def _write_outputs(out: Path, prior: PriorMap, old_poses_text: str | None, store
         write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt")
     write_ply(run.points_ply, points.points3d_in_world)
     write_extrinsics(run.extrinsics, extrinsics)
+    write_results_bag(run.results_bag, trajectory, None, points.points3d_in_world, None,
+                      rig.base_frame_id, {c.name: (c.frame_id, rig_from_cam[c.name])
+                                          for c in rig})
     sessions = {}
     for session in (OLD, NEW):
         _write_text(run.root / "sessions" / session / "poses.tum",

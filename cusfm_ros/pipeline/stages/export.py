@@ -6,7 +6,9 @@
 - ``extrinsics.yaml``: ``base_link_from_cam`` per camera (refined with --optimize-extrinsics);
 - ``sparse/``: COLMAP model (cameras, images with every keypoint, points3D with tracks and,
   with ``rgb``, colours sampled from the keyframe images); text or binary;
-- ``points.ply``: the points (with colours when sampled).
+- ``points.ply``: the points (with colours when sampled);
+- ``results.mcap``: refined and initial paths, the point cloud and the refined extrinsics as
+  a rosbag2 MCAP file for ``ros2 bag play`` and Foxglove (``io/results_bag.py``).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from cusfm_ros.io.extrinsics_yaml import Extrinsics, read_extrinsics
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.map_points_file import read_map_points
 from cusfm_ros.io.ply import write_ply
+from cusfm_ros.io.results_bag import write_results_bag
 from cusfm_ros.io.tum import read_tum
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features
@@ -126,7 +129,8 @@ class ExportStage(Stage):
     sections = {"export": ExportOptions}
     reads = ("export",)
     inputs = ("keyframes_dir", "features", "mapping_dir")
-    outputs = ("initial_poses", "poses", "extrinsics", "points_ply")
+    outputs = ("initial_poses", "poses", "extrinsics", "points_ply", "results_bag")
+    version = 2
     optional_outputs = ("sparse",)
 
     def run(self, context: StageContext) -> dict:
@@ -141,6 +145,11 @@ class ExportStage(Stage):
             model = colmap_model(keyframes, read_tum(run.mapping_poses),
                                  read_extrinsics(run.mapping_extrinsics), points, rgb, store)
         write_ply(run.points_ply, points.points3d_in_world, rgb)
+        extrinsics = read_extrinsics(run.mapping_extrinsics)
+        write_results_bag(run.results_bag, read_tum(run.mapping_poses),
+                          read_tum(run.keyframe_initial_poses), points.points3d_in_world, rgb,
+                          extrinsics.base_frame_id,
+                          {n: (c.frame_id, c.rig_from_cam) for n, c in extrinsics.cameras.items()})
         if model is not None:
             write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt")
         _copy(run.keyframe_initial_poses, run.initial_poses)
