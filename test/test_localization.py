@@ -467,3 +467,47 @@ def test_map_update_fixed_keeps_the_map_and_adjust_improves_both_sessions(mapped
     # measured 2026-12-02: session 1 0.0253 -> 0.0230 m, session 2 0.0320 -> 0.0267 m
     assert s1[1] < s1[0] and s2[1] < s2[0], (s1, s2)
     assert _ate(truth2, fixed / "sessions" / "new" / "poses.tum") < s2[0]
+
+
+def test_localize_service_logic_answers_and_survives_bad_requests(mapped, tmp_path):
+    """The ~/localize service's request handling (no rclpy): a good rig request, then bad
+    ones, each success=False with the reason, then a good one again."""
+    from types import SimpleNamespace
+
+    from cusfm_ros.io.bags import messages as m
+    from cusfm_ros.pipeline.localization import load_localizer
+    from cusfm_ros.ros.localize_service import LocalizeService
+
+    sim, run = mapped
+    image, _, world_from_cam, pixels = _query_image(sim, tmp_path)
+    service = LocalizeService(load_localizer(run))
+    name = service.rig.names[0]
+    rgb = pixels  # as decoded from the bag: RGB (or mono)
+    encoding = "rgb8" if rgb.ndim == 3 else "mono8"
+    good = SimpleNamespace(images=[m.image_msg(rgb, 7, name, encoding)], camera_names=[name],
+                           prior=None, prior_radius_m=0.0)
+    answer = service.handle(good)
+    assert answer.success and answer.num_inliers >= 40 and answer.stamp_ns == 7
+    world_from_cam_est = answer.map_from_base_link * service.rig[name].rig_from_cam
+    error = world_from_cam.inverse() * _map_to_truth(sim, run) * world_from_cam_est
+    assert np.linalg.norm(error.translation) < 0.1 and error.rotation_angle_deg() < 1.0
+    pose = service.response_pose(answer)
+    assert pose.header.frame_id == "map" and pose.pose.covariance[0] > 0
+    bad_encoding = m.image_msg(rgb, 7, name, encoding)
+    bad_encoding.encoding = "yuv422_yuy2"
+    small = m.image_msg(cv2.resize(rgb, (160, 120)), 7, name, encoding)
+    cases = {
+        "the request has no image": SimpleNamespace(images=[], camera_names=[], prior=None),
+        "1 images but 2 camera names": SimpleNamespace(images=good.images,
+                                                       camera_names=[name, name], prior=None),
+        "camera 'nope' is not in the map": SimpleNamespace(images=good.images,
+                                                           camera_names=["nope"], prior=None),
+        "unsupported image encoding 'yuv422_yuy2'": SimpleNamespace(
+            images=[bad_encoding], camera_names=[name], prior=None),
+        "the image is 160x120 but its camera model is 320x240": SimpleNamespace(
+            images=[small], camera_names=[name], prior=None),
+    }
+    for expected, request in cases.items():
+        answer = service.handle(request)
+        assert not answer.success and expected in answer.message, (expected, answer.message)
+    assert service.handle(good).success
