@@ -7,7 +7,7 @@ DEMO_OUT ?= demo_out
 MODELS := $(VENV)/.models
 export CUSFM_MODEL_DIR ?= $(CURDIR)/.models
 
-.PHONY: demo test test-all lint models clean
+.PHONY: demo test test-all lint models clean ros test-ros
 
 $(STAMP): requirements.txt setup.py setup.cfg
 	$(PYTHON) -m venv $(VENV)
@@ -33,8 +33,20 @@ test: $(STAMP) $(MODELS)
 test-all: $(STAMP) $(MODELS)
 	$(PY) -m pytest -q -m "not gpu" test
 
+# ROS 2 Jazzy (real rclpy) in its own venv, and the tests that need it
+ROS_VENV ?= .venv-ros
+ROS_STAMP := $(ROS_VENV)/.installed
+
+$(ROS_STAMP): requirements-ros.txt requirements.txt setup.py setup.cfg msg_schemas/CMakeLists.txt
+	tools/build_ros.sh $(PYTHON) $(ROS_VENV)
+
+ros: $(ROS_STAMP)
+
+test-ros: $(ROS_STAMP) $(MODELS)
+	tools/ros_env.sh $(ROS_VENV) $(ROS_VENV)/bin/python -m pytest -q -p no:cacheprovider test/ros
+
 lint: $(STAMP)
 	$(VENV)/bin/ruff check cusfm_ros test bench
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .models build *.egg-info
+	rm -rf $(VENV) $(ROS_VENV) $(DEMO_OUT) .models build build-ros *.egg-info

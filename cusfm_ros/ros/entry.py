@@ -16,7 +16,7 @@ from cusfm_ros.ros.runtime import import_ros
 
 NODE_PIPELINES = {
     "mapper": "cusfm_ros.pipeline.mapper",
-    "localizer": "cusfm_ros.pipeline.localizer",
+    "localizer": "cusfm_ros.pipeline.localization",
     "extrinsic_calibration": "cusfm_ros.pipeline.extrinsic_calibration",
 }
 
