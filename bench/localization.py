@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from cusfm_ros.cli.main import main as cusfm
-from cusfm_ros.core.geometry import Rigid3, umeyama_alignment
+from cusfm_ros.core.geometry import Rigid3, umeyama_pose_alignment
 from cusfm_ros.core.localization.localizer import QueryImage
 from cusfm_ros.io.bags.reader import BagReader
 from cusfm_ros.io.bags.rig_samples import iter_rig_samples, scan_cameras
@@ -39,16 +39,6 @@ REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 HEADER = ("| case | queries | localized | within (0.1 m, 1°) | within (0.25 m, 2°) | "
           "median error | median rotation | latency median / p90 |\n|---|---|---|---|---|---|"
           "---|---|")
-
-
-def fit(source: np.ndarray, target: np.ndarray, with_scale: bool = False):
-    """target_from_source from poses (N, 4, 4): origins and axis tips (orientation counts)."""
-    axes = np.concatenate([np.zeros((1, 3)), np.eye(3)])
-
-    def markers(poses):
-        return ((poses[:, None, :3, :3] @ axes[None, :, :, None])[..., 0].reshape(-1, 3)
-                + np.repeat(poses[:, :3, 3], 4, axis=0))
-    return umeyama_alignment(markers(source), markers(target), with_scale)
 
 
 def errors(estimates: dict[int, np.ndarray], truth: dict[int, np.ndarray], align) -> np.ndarray:
@@ -74,7 +64,7 @@ def row(label: str, queries: int, err: np.ndarray, seconds: list[float]) -> str:
 def map_frame_onto_truth(run: Path, truth_path: Path):
     truth, mapped = read_tum(truth_path), read_tum(run / "poses.tum")
     index = np.searchsorted(truth.stamps_ns, mapped.stamps_ns)
-    return fit(mapped.world_from_body, truth.world_from_body[index])
+    return umeyama_pose_alignment(mapped.world_from_body, truth.world_from_body[index])
 
 
 def localize_images(localizer, bag_path: Path, cameras_wanted: list[str] | None,
@@ -154,7 +144,8 @@ def bench_kitti(out: Path, args, lines: list[str]) -> None:
     found = {k: v[0].matrix() for k, v in per_image.items() if v[0] is not None}
     seconds = [v[1] for v in per_image.values()]
     for label, scale in (("SE(3)", False), ("Sim(3)", True)):
-        align = fit(mapped.world_from_body, truth.world_from_body[index], scale)
+        align = umeyama_pose_alignment(mapped.world_from_body, truth.world_from_body[index],
+                                       scale)
         lines.append(row(f"KITTI 06 right images vs left-only map, {label}-aligned map",
                          len(per_image), errors(found, image_truth, align), seconds))
 
@@ -191,7 +182,8 @@ def bench_door(out: Path, args, lines: list[str]) -> None:
     truth = read_tum(out / "door" / "ground_truth.tum")
     index = np.searchsorted(truth.stamps_ns, mapped.stamps_ns)
     # mapped poses are of base_link; the bag's truth holds the reference's base_link poses
-    align = fit(mapped.world_from_body, truth.world_from_body[index], with_scale=True)
+    align = umeyama_pose_alignment(mapped.world_from_body, truth.world_from_body[index],
+                                   with_scale=True)
     scale_m = np.median(np.linalg.norm(np.diff(truth.positions_m, axis=0), axis=1))
     found, seconds = {}, []
     for name in sorted(held_out):

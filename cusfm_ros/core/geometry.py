@@ -342,6 +342,21 @@ def umeyama_alignment(source_points: np.ndarray, target_points: np.ndarray,
     return Sim3(rotation, translation, scale)
 
 
+def umeyama_pose_alignment(source_poses: np.ndarray, target_poses: np.ndarray,
+                           with_scale: bool = False, axis_length_m: float = 1.0) -> Sim3:
+    """``target_from_source`` fitted to poses (N, 4, 4), orientations included: each pose adds
+    its origin and the tips of its three axes (``axis_length_m`` long), so a straight or planar
+    drive still fixes every rotation axis (positions alone leave the roll about a line free)."""
+    axes = np.concatenate([np.zeros((1, 3)), np.eye(3) * axis_length_m])
+
+    def markers(poses: np.ndarray) -> np.ndarray:
+        poses = np.asarray(poses, np.float64)
+        return ((poses[:, None, :3, :3] @ axes[None, :, :, None])[..., 0].reshape(-1, 3)
+                + np.repeat(poses[:, :3, 3], 4, axis=0))
+
+    return umeyama_alignment(markers(source_poses), markers(target_poses), with_scale)
+
+
 def poses_to_matrices(poses: list[Rigid3]) -> np.ndarray:
     return np.stack([p.matrix() for p in poses]) if poses else np.zeros((0, 4, 4))
 

@@ -245,28 +245,28 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
         timings["cross_matching_s"] = time.perf_counter() - tick
         pair_matches += [(a, b, cross_store.matches(a, b)) for a, b in cross]
 
-    # ---- bundle adjustment over both sessions
-    mapping = replace(options.mapping,
-                      fixed_samples=old_samples if update.mode == "fixed" else old_samples[:1],
-                      session_starts=firsts)
-    tick = time.perf_counter()
-    output = map_keyframes(merged_set, keypoints, pair_matches, start, measured, mapping,
-                           options.refinement, options.bundle_adjustment, options.frame_type)
-    timings["bundle_adjustment_s"] = time.perf_counter() - tick
-    world_from_rig = output.world_from_rig.world_from_body.copy()
-    points, merge_counts = output.points, {}
-    if update.mode == "fixed":  # the old map exactly as it was
-        for i, s in enumerate(sample_ids):
-            if s in old_samples:
-                world_from_rig[i] = np.array(old_poses[s.split(":", 1)[1]])
-        points, merge_counts = merge_fixed_points(prior, output.points)
-        rig_from_cam = {c.name: c.rig_from_cam for c in rig}
-    else:
-        rig_from_cam = output.rig_from_cam
-    trajectory = Trajectory(sample_stamps, world_from_rig)
-    report = _write_outputs(out, prior, map_poses_text(map_dir) if update.mode == "fixed"
-                            else None, session, options, merged_set, trajectory, sample_ids,
-                            rig_from_cam, points)
+        # ---- bundle adjustment over both sessions
+        mapping = replace(options.mapping,
+                          fixed_samples=old_samples if update.mode == "fixed" else old_samples[:1],
+                          session_starts=firsts)
+        tick = time.perf_counter()
+        output = map_keyframes(merged_set, keypoints, pair_matches, start, measured, mapping,
+                               options.refinement, options.bundle_adjustment, options.frame_type)
+        timings["bundle_adjustment_s"] = time.perf_counter() - tick
+        world_from_rig = output.world_from_rig.world_from_body.copy()
+        points, merge_counts = output.points, {}
+        if update.mode == "fixed":  # the old map exactly as it was
+            for i, s in enumerate(sample_ids):
+                if s.startswith(OLD + ":"):
+                    world_from_rig[i] = np.array(old_poses[s.split(":", 1)[1]])
+            points, merge_counts = merge_fixed_points(prior, output.points)
+            rig_from_cam = {c.name: c.rig_from_cam for c in rig}
+        else:
+            rig_from_cam = output.rig_from_cam
+        trajectory = Trajectory(sample_stamps, world_from_rig)
+        report = _write_outputs(out, prior, map_poses_text(map_dir) if update.mode == "fixed"
+                                else None, features, options, merged_set, trajectory, sample_ids,
+                                rig_from_cam, points)
     counts = {"mode": update.mode, "new_samples": len(new_ids), "localized": len(localized),
               "placement_inliers": len(alignment.inliers), "placement_rms_m": alignment.rms_m,
               "cross_pairs": len(cross), "cross_verified_matches":
@@ -307,21 +307,19 @@ def _write_text(path: Path, text: str) -> None:
         handle.write(text)
 
 
-def _write_outputs(out: Path, prior: PriorMap, old_poses_text: str | None, store_path: RunDir,
-                   options, merged: KeyframeSet, trajectory: Trajectory, sample_ids: list[str],
+def _write_outputs(out: Path, prior: PriorMap, old_poses_text: str | None,
+                   features: _MergedFeatures, options, merged: KeyframeSet,
+                   trajectory: Trajectory, sample_ids: list[str],
                    rig_from_cam: dict[str, Rigid3], points) -> dict:
     run = RunDir(out)
     rig = merged.rig
     extrinsics = Extrinsics(rig.base_frame_id, {c.name: CameraExtrinsics(
         c.frame_id, rig_from_cam[c.name]) for c in rig})
     refined = refined_keyframes(merged, trajectory, rig_from_cam)
-    with open_features(store_path, options) as store:
-        features = _MergedFeatures(prior, store)
-        prior_rows = {k.image_name: prior.bow[i]
-                      for i, k in enumerate(prior.keyframes.keyframes)}
-        merged_map = build_prior_map(refined, trajectory, points, features, prior.vocabulary,
-                                     features_section(options), bow_rows=prior_rows)
-        model = colmap_model(merged, trajectory, extrinsics, points, None, features)
+    prior_rows = {k.image_name: prior.bow[i] for i, k in enumerate(prior.keyframes.keyframes)}
+    merged_map = build_prior_map(refined, trajectory, points, features, prior.vocabulary,
+                                 features_section(options), bow_rows=prior_rows)
+    model = colmap_model(merged, trajectory, extrinsics, points, None, features)
     write_map_store(run.map_dir, merged_map, _poses_text(trajectory, sample_ids,
                                                          old_poses_text))
     if model is not None:

@@ -46,8 +46,8 @@ def _nearest_two(a: np.ndarray, b: np.ndarray, batch: int) -> tuple[np.ndarray, 
 
 
 def _dense_nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One distance matrix for both directions (when it fits): each row's nearest and
-    second-nearest squared distance, and each column's nearest row."""
+    """One distance matrix for both directions (when it fits): each row's nearest column,
+    its nearest and second-nearest squared distances, and each column's nearest row."""
     d = (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2.0 * a @ b.T
     np.maximum(d, 0, out=d)
     rows = np.arange(len(a))
@@ -56,7 +56,7 @@ def _dense_nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray
     col_best = d.argmin(0)
     d[rows, first] = np.inf
     second = d.min(1) if d.shape[1] > 1 else np.full(len(a), np.inf, np.float32)
-    return np.stack([first, np.zeros_like(first)], 1), np.stack([best, second], 1), col_best
+    return first, np.stack([best, second], 1), col_best
 
 
 DENSE_LIMIT = 16_000_000
@@ -84,10 +84,10 @@ class KnnMatcher:
         d0, d1 = d0.astype(np.float32), d1.astype(np.float32)
         dense = len(d0) * len(d1) <= DENSE_LIMIT
         if dense:
-            nn01, dist01, col_best = _dense_nearest(d0, d1)
+            best, dist01, col_best = _dense_nearest(d0, d1)
         else:
             nn01, dist01 = _nearest_two(d0, d1, self.options.batch_size)
-        best = nn01[:, 0]
+            best = nn01[:, 0]
         keep = np.ones(len(d0), bool)
         if self.options.ratio < 1 and len(d1) > 1:
             keep &= np.sqrt(dist01[:, 0]) < self.options.ratio * np.sqrt(dist01[:, 1])

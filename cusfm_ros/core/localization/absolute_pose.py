@@ -113,7 +113,6 @@ class AbsolutePoseSolver:
         per_px = float(np.median(view.camera.normalized_per_px(view.uv_px[front])))
         params = usac_params(TwoViewOptions(o.ransac_threshold_px * per_px, o.confidence,
                                             o.max_iterations, self.seed))
-        params.sampler = cv2.SAMPLING_UNIFORM
         try:
             ok, _, rvec, tvec, _ = cv2.solvePnPRansac(
                 view.points3d_in_world[front].astype(np.float64)[:, None],

@@ -126,7 +126,6 @@ class Localizer:
         self.solver = AbsolutePoseSolver(options.pose, options.seed)
         self.knn = KnnMatcher(KnnOptions(ratio=options.knn_ratio, mutual=True))
         keyframes = prior_map.keyframes.keyframes
-        self._image_index = {k.image_name: i for i, k in enumerate(keyframes)}
         # neighbours in time along the same camera (keyframes are in image-index order)
         by_camera: dict[str, list[int]] = {}
         for i, k in enumerate(keyframes):
@@ -151,10 +150,11 @@ class Localizer:
         first = self.matcher if o.matcher == "map" and self.matcher is not None else self.knn
         try:
             features = [self._features(q) for q in queries]
+            candidates = self._candidates(queries, features, prior,
+                                          prior_radius_m or self.options.prior_radius_m)
             retry = o.matcher == "auto" and self.matcher is not None
             try:
-                result = self._localize(queries, features, prior, prior_radius_m,
-                                        keep_matches, first)
+                result = self._localize(queries, features, candidates, keep_matches, first)
             except LocalizationError:
                 if not retry:
                     raise
@@ -165,8 +165,8 @@ class Localizer:
                 o.confident_inliers, o.knn_min_inlier_ratio * result.num_correspondences)
             if retry and weak:
                 try:
-                    second = self._localize(queries, features, prior, prior_radius_m,
-                                            keep_matches, self.matcher)
+                    second = self._localize(queries, features, candidates, keep_matches,
+                                            self.matcher)
                 except LocalizationError:
                     if result is None:
                         raise
@@ -195,12 +195,21 @@ class Localizer:
                                     "of this camera (or resize the image)")
         return self.extractor.extract(query.image)
 
-    def _candidates(self, descriptors: list[np.ndarray], prior: Rigid3 | None,
-                    radius_m: float) -> list[int]:
+    def _candidates(self, queries: list[QueryImage], features: list[Features],
+                    prior: Rigid3 | None, radius_m: float) -> list[int]:
+        """Keyframes to match, best first (the same for every matcher tried)."""
         o = self.options
+        if self.map.num_keyframes == 0 or len(self.map) == 0:
+            raise LocalizationError("the map has no keyframes or no points")
+        for q, f in zip(queries, features):
+            if len(f) and f.descriptors.shape[1] != self.map.descriptor_dim:
+                raise LocalizationError(
+                    f"{q.name}: descriptors of size {f.descriptors.shape[1]} but the map's "
+                    f"are {self.map.descriptor_dim}; localize with the extractor the map was "
+                    "built with")
         scores = np.zeros(self.map.num_keyframes)
-        for d in descriptors:
-            scores = np.maximum(scores, self.map.bow_scores(d))
+        for f in features:
+            scores = np.maximum(scores, self.map.bow_scores(f.descriptors))
         if prior is not None:
             distance = np.linalg.norm(self.map.camera_positions_m() - prior.translation, axis=1)
             near = distance <= radius_m
@@ -234,18 +243,7 @@ class Localizer:
         return views, sources
 
     def _localize(self, queries: list[QueryImage], features: list[Features],
-                  prior: Rigid3 | None, prior_radius_m: float | None, keep_matches: bool,
-                  matcher) -> LocalizationResult:
-        if self.map.num_keyframes == 0 or len(self.map) == 0:
-            raise LocalizationError("the map has no keyframes or no points")
-        for q, f in zip(queries, features):
-            if len(f) and f.descriptors.shape[1] != self.map.descriptor_dim:
-                raise LocalizationError(
-                    f"{q.name}: descriptors of size {f.descriptors.shape[1]} but the map's "
-                    f"are {self.map.descriptor_dim}; localize with the extractor the map was "
-                    "built with")
-        radius = prior_radius_m or self.options.prior_radius_m
-        candidates = self._candidates([f.descriptors for f in features], prior, radius)
+                  candidates: list[int], keep_matches: bool, matcher) -> LocalizationResult:
         best = [(np.full(len(f), -1.0), np.full(len(f), -1, np.int64),
                  np.full(len(f), -1, np.int64)) for f in features]
         pose, matched, raw = None, 0, {}

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cusfm_ros.core.features.types import Matches
-from cusfm_ros.core.geometry import Rigid3, umeyama_alignment
+from cusfm_ros.core.geometry import Rigid3, umeyama_pose_alignment
 from cusfm_ros.core.localization.prior_map import PriorMap
 from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.errors import MappingError
@@ -47,17 +47,10 @@ def align_session(session_world_from_rig: np.ndarray, localized: dict[int, np.nd
         raise MappingError(f"the localized samples disagree: at most {len(best_inliers)} of "
                            f"{len(index)} fit one placement of the new session within "
                            f"{max_error_m} m")
-    # least squares over positions and orientations: each sample adds its origin and the tips
-    # of its axes (1 m), so a planar or straight drive still fixes every rotation axis
-    axes = np.concatenate([np.zeros((1, 3)), np.eye(3)])
-
-    def markers(poses: np.ndarray) -> np.ndarray:
-        return (poses[:, None, :3, :3] @ axes[None, :, :, None])[..., 0].reshape(-1, 3) + \
-            np.repeat(poses[:, :3, 3], 4, axis=0)
-
-    sim = umeyama_alignment(markers(session[best_inliers]), markers(target[best_inliers]))
+    # least squares over positions and orientations of the samples that agree
+    fit = umeyama_pose_alignment(session[best_inliers], target[best_inliers])
     best = np.eye(4)
-    best[:3, :3], best[:3, 3] = sim.rotation, sim.translation
+    best[:3, :3], best[:3, 3] = fit.rotation, fit.translation
     moved = best[:3, :3] @ session[best_inliers, :3, 3].T + best[:3, 3:4]
     rms = float(np.sqrt(np.mean(np.sum((moved.T - target[best_inliers, :3, 3]) ** 2, axis=1))))
     return SessionAlignment(Rigid3.from_matrix(best), index[best_inliers], rms)
@@ -67,10 +60,7 @@ def matches_from_tracks(prior_map: PriorMap) -> dict[tuple[int, int], Matches]:
     """The map's tracks as matches between keyframes (indices into each keyframe's map
     features): consecutive observations of each point, so rebuilding tracks from them gives
     the map's tracks back."""
-    m = len(prior_map.obs_point)
-    obs_keyframe = np.repeat(np.arange(prior_map.num_keyframes),
-                             np.diff(prior_map.keyframe_offsets))
-    local = np.arange(m) - prior_map.keyframe_offsets[obs_keyframe]
+    obs_keyframe, local = prior_map.observation_keyframes()
     point = np.asarray(prior_map.obs_point)
     order = np.lexsort((obs_keyframe, point))
     same = point[order[1:]] == point[order[:-1]]
@@ -88,10 +78,8 @@ def matches_from_tracks(prior_map: PriorMap) -> dict[tuple[int, int], Matches]:
 def old_map_points(prior_map: PriorMap) -> MapPoints:
     """The map's points and observations as ``MapPoints`` (keypoint = index into the
     keyframe's map features), exactly as stored."""
-    obs_keyframe = np.repeat(np.arange(prior_map.num_keyframes),
-                             np.diff(prior_map.keyframe_offsets))
+    obs_keyframe, local = prior_map.observation_keyframes()
     names = np.array([k.image_name for k in prior_map.keyframes.keyframes])
-    local = np.arange(len(obs_keyframe)) - prior_map.keyframe_offsets[obs_keyframe]
     return MapPoints(np.array(prior_map.points3d_in_world), np.array(prior_map.obs_point),
                      names[obs_keyframe] if len(obs_keyframe) else np.zeros(0, str), local,
                      np.array(prior_map.obs_uv_px, np.float64),

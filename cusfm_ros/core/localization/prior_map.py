@@ -93,6 +93,12 @@ class PriorMap:
                             (camera.width, camera.height))
         return features, np.asarray(self.obs_point[lo:hi], np.int64)
 
+    def observation_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) keyframe of each observation, and (M,) its index among that keyframe's map
+        features (the index ``keyframe_features`` gives it)."""
+        obs_keyframe = np.repeat(np.arange(self.num_keyframes), np.diff(self.keyframe_offsets))
+        return obs_keyframe, np.arange(len(obs_keyframe)) - self.keyframe_offsets[obs_keyframe]
+
     def bow_scores(self, descriptors: np.ndarray) -> np.ndarray:
         """(K,) cosine similarity of each keyframe with an image of these descriptors."""
         if self.num_keyframes == 0:
