@@ -43,6 +43,7 @@ $(ROS_STAMP): requirements-ros.txt requirements.txt setup.py setup.cfg msg_schem
 ros: $(ROS_STAMP)
 
 test-ros: $(ROS_STAMP) $(MODELS)
+	tools/build_ros.sh $(PYTHON) $(ROS_VENV) --cusfm-ros-only
 	tools/ros_env.sh $(ROS_VENV) $(ROS_VENV)/bin/python -m pytest -q -p no:cacheprovider test/ros
 
 lint: $(STAMP)

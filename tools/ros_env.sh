@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
-# The environment of the ROS tests (`make test-ros`): the built interface package on the
-# paths, discovery kept on this machine. Usage: tools/ros_env.sh VENV COMMAND...
-set -euo pipefail
+# The environment of the ROS tests (`make test-ros`): the venv's Jazzy wheels and the colcon
+# install of build-ros/ (cusfm_ros, cusfm_ros_interfaces, and the test workspace's tf2_msgs)
+# sourced the way a user sources a workspace, discovery kept on this machine.
+# Usage: tools/ros_env.sh VENV COMMAND...
+set -eo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 venv=$(cd "$1" && pwd); shift
-interfaces="$root/build-ros/install/cusfm_ros_interfaces"
-export AMENT_PREFIX_PATH="$interfaces:$venv"
-export PYTHONPATH="$interfaces/lib/python3.11/site-packages${PYTHONPATH:+:$PYTHONPATH}"
-export LD_LIBRARY_PATH="$interfaces/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+export AMENT_PREFIX_PATH="$venv"
+export COLCON_CURRENT_PREFIX="$root/build-ros/install"
+# shellcheck disable=SC1091
+source "$root/build-ros/install/local_setup.bash"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-61}
 exec "$@"

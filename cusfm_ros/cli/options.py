@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 
 from cusfm_ros.pipeline.components import BACKENDS, DEVICES, EXTRACTORS, MATCHERS
-from cusfm_ros.pipeline.options import SWITCHES, resolve_options, switch_overrides
+from cusfm_ros.pipeline.options import (SWITCHES, resolve_options, set_overrides,
+                                        switch_overrides)
 
 
 def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
@@ -48,26 +49,9 @@ def add_feature_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model-dir", default=None)
 
 
-def _set_options(pairs: list[str]) -> dict:
-    import yaml
-
-    from cusfm_ros.errors import ConfigError
-
-    out = {}
-    for item in pairs:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE (e.g. loops.top_k=10)")
-        try:
-            out[key.strip()] = yaml.safe_load(value)
-        except yaml.YAMLError:
-            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
-    return out
-
-
 def resolved_options(args: argparse.Namespace):
     """MapperOptions from ``--config`` and every switch the command defines."""
     values = {name: getattr(args, name) for name in SWITCHES if hasattr(args, name)}
     overrides = switch_overrides(values)
-    overrides.update(_set_options(getattr(args, "set_options", [])))
+    overrides.update(set_overrides(getattr(args, "set_options", [])))
     return resolve_options(getattr(args, "config", None), overrides)

@@ -51,3 +51,17 @@ def write_results_bag(path: str | os.PathLike, refined: Trajectory,
         storage = next(bag_dir.glob("*.mcap"))
         os.replace(storage, path)
         shutil.rmtree(bag_dir, ignore_errors=True)
+
+
+def read_results_bag(path: str | os.PathLike) -> list[tuple[str, str, bytes]]:
+    """The messages of a results bag as ``(topic, msgtype, CDR bytes)`` in topic order — what
+    the mapper node publishes as they are."""
+    from cusfm_ros.io.bags.reader import BagReader
+
+    with BagReader(path) as bag:
+        topics = bag.topics()
+        messages = list(bag.messages(topics))
+    order = {t: i for i, t in enumerate((PATH_TOPIC, INITIAL_PATH_TOPIC, CLOUD_TOPIC,
+                                         TF_STATIC_TOPIC))}
+    return sorted(((r.topic, r.msgtype, r.raw) for r in messages),
+                  key=lambda item: order.get(item[0], len(order)))

@@ -101,6 +101,22 @@ def switch_overrides(values: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def set_overrides(pairs: list[str], what: str = "--set") -> dict[str, Any]:
+    """Dotted overrides from ``KEY=VALUE`` items, the value in YAML (``loops.top_k=10``)."""
+    import yaml
+
+    out = {}
+    for item in pairs:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{what} {item!r}: expected KEY=VALUE (e.g. loops.top_k=10)")
+        try:
+            out[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError:
+            raise ConfigError(f"{what} {item!r}: the value is not valid YAML") from None
+    return out
+
+
 def _check_reserved(data: dict[str, Any]) -> None:
     """Raise for a handed-down key inside a section (``loops.seed``)."""
     def walk(node: Any, path: str) -> None:

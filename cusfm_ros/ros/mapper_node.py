@@ -1,115 +1,158 @@
 """``ros2 run cusfm_ros mapper``: the offline mapper as a ROS 2 node.
 
-A thin adapter over ``cusfm_ros.pipeline.mapper``: parameters name the bag, the run directory,
-a YAML preset and the few switches of ``cusfm map``; the pipeline's log goes to the node's
-logger; when the map is done, a ``cusfm_ros_interfaces/MapInfo`` is published latched on
-``~/map_info`` and the node exits (status 0, or 1 with the error logged).
+Parameters (all read-only, typed; ``ros/parameters.py`` lists them with descriptions): ``bag``
+and ``out`` (required), ``config`` (preset YAML), ``steps``, ``set`` (``KEY=VALUE`` like
+``cusfm map --set``), ``overwrite``, ``map_frame``, ``linger_s`` and every switch of
+``cusfm map`` under its option name (``pipeline.options.SWITCHES``: frame_type,
+optimize_extrinsics, rolling_shutter_line_delay_s, rgb, seed, device, ...). Options are
+resolved exactly as the command line resolves them.
 
-Parameters: bag (string, required), out (string, required), config (string, YAML preset),
-steps (string[], default all), and every switch of ``cusfm map`` under its option name
-(``pipeline.options.SWITCHES``: frame_type, optimize_extrinsics,
-rolling_shutter_line_delay_s, colmap_binary, rgb, seed, device, ...); a switch left unset
-keeps the preset's value.
+The pipeline runs in a worker process (``pipeline/worker.py``) while the node spins (its
+parameter services answer during a run); the worker's log, progress and per-stage timings go to
+the node's logger. When the map is done, the run's ``results.mcap`` is published as it is,
+latched (reliable, transient-local, depth 1): ``/cusfm/path``, ``/cusfm/initial_path``,
+``/cusfm/map_cloud`` and the refined extrinsics on ``/tf_static``, then a
+``cusfm_ros_interfaces/MapInfo`` on ``~/map_info``; the node stays up serving them until shut
+down (or ``linger_s``) and exits 0. SIGINT or SIGTERM during the run stops the worker (every
+atomic write in progress is dropped, the run directory can be resumed) and the node exits as
+that signal would (status -15 / -2). A failed run logs its one-line error and exits 1.
 """
 
 from __future__ import annotations
 
-import logging
+import sys
+import time
 from collections.abc import Sequence
-from pathlib import Path
 
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.ros.runtime import import_ros
 
-logger = logging.getLogger(__name__)
-
-
-class _RosLogHandler(logging.Handler):
-    """Forwards the pipeline's Python logging to the node's rclpy logger."""
-
-    def __init__(self, ros_logger) -> None:
-        super().__init__()
-        self.ros_logger = ros_logger
-
-    def emit(self, record: logging.LogRecord) -> None:
-        message = self.format(record)
-        if record.levelno >= logging.ERROR:
-            self.ros_logger.error(message)
-        elif record.levelno >= logging.WARNING:
-            self.ros_logger.warning(message)
-        else:
-            self.ros_logger.info(message)
-
-
-def mapper_options_from_parameters(values: dict):
-    """MapperOptions from the node's parameter values through the CLI's resolver: the preset
-    (``config``) first, every switch parameter that is set (not None) on top."""
-    from cusfm_ros.pipeline.options import SWITCHES, resolve_options, switch_overrides
-
-    switches = {name: values.get(name) for name in SWITCHES}
-    return resolve_options(values.get("config") or None, switch_overrides(switches),
-                           overrides_source="parameters")
-
-
-def _declare(node, name: str, default):
-    """Declare a parameter; a switch without a default is dynamically typed and stays None
-    unless given (so it never overrides the preset)."""
-    if default is not None:
-        return node.declare_parameter(name, default).value
-    try:
-        from rcl_interfaces.msg import ParameterDescriptor
-    except ImportError:  # stand-in rclpy of the tests
-        return node.declare_parameter(name, None).value
-    return node.declare_parameter(name, None, ParameterDescriptor(dynamic_typing=True)).value
-
-
-def map_info_message(message_type, stamp, run_dir: Path, report: dict, rig) -> object:
-    message = message_type()
-    message.header.stamp = stamp
-    message.header.frame_id = "map"
-    message.map_path = str(run_dir)
-    message.num_keyframes = int(report["summary"].get("keyframes") or 0)
-    message.num_points = int(report["summary"].get("points") or 0)
-    message.num_cameras = len(rig)
-    message.camera_names = list(rig.names)
-    return message
-
 
 def main(args: Sequence[str] | None = None) -> int:
     rclpy = import_ros("rclpy")
-    qos = import_ros("rclpy.qos")
     interfaces = import_ros("cusfm_ros_interfaces.msg")
-    from cusfm_ros.io.keyframes_file import read_keyframes
-    from cusfm_ros.io.run_dir import RunDir
-    from cusfm_ros.pipeline.mapper import STAGE_NAMES, Mapper
-    from cusfm_ros.pipeline.options import SWITCHES
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=list(args) if args is not None else None)
-    node = rclpy.create_node("cusfm_mapper")
-    handler = _RosLogHandler(node.get_logger())
-    logging.getLogger("cusfm_ros").addHandler(handler)
-    logging.getLogger("cusfm_ros").setLevel(logging.INFO)
+    from cusfm_ros.io.results_bag import TF_STATIC_TOPIC, read_results_bag
+    from cusfm_ros.io.run_dir import RunDir
+    from cusfm_ros.pipeline.worker import MapperJob
+    from cusfm_ros.ros import rclpy_tools as tools
+    from cusfm_ros.ros.parameters import mapper_request, mapper_specs
+
+    class MapperNode(Node):
+        def __init__(self) -> None:
+            super().__init__("cusfm_mapper")
+            values = tools.declare(self, mapper_specs())
+            self.request = mapper_request(values)
+            self.linger_s = float(values["linger_s"])
+            self.map_frame = values["map_frame"]
+            self.outcome: str | None = None  # done | failed
+            self.finished_at = 0.0
+            self.publishers_: list = []
+            self.tf = tools.StaticTransforms(self)
+            r = self.request
+            self.get_logger().info(f"mapping {r.bag} into {r.run_dir} (stages: "
+                                   f"{', '.join(r.steps)})")
+            self.job = MapperJob(r.options, r.bag, r.run_dir, r.steps, r.overwrite)
+            self.create_timer(0.1, self._poll)
+
+        def _poll(self) -> None:
+            for event in self.job.events():
+                if event.kind == "log":
+                    tools.log(self, int(event.data.get("level", 20)), event.data["message"])
+                elif event.kind == "error":
+                    self.get_logger().error(event.data["message"])
+                    self.outcome = "failed"
+                elif event.kind == "done":
+                    self._publish_results(event.data["summary"])
+                    self.outcome, self.finished_at = "done", time.monotonic()
+                elif event.kind == "exit" and self.outcome is None:
+                    self.get_logger().error(f"the mapper worker ended with status "
+                                            f"{event.data['status']} before finishing")
+                    self.outcome = "failed"
+
+        def _publish_results(self, summary: dict) -> None:
+            run = RunDir(self.request.run_dir)
+            if run.results_bag.is_file():
+                for topic, msgtype, raw in read_results_bag(run.results_bag):
+                    if topic == TF_STATIC_TOPIC:
+                        self.tf.publish_raw(raw)
+                        continue
+                    publisher = self.create_publisher(tools.message_class(msgtype), topic,
+                                                      tools.LATCHED)
+                    publisher.publish(raw)  # the results bag's CDR, as it is
+                    self.publishers_.append(publisher)
+            else:
+                self.get_logger().warning(f"{run.results_bag} is missing (the export stage "
+                                          "did not run): nothing to publish but MapInfo")
+            info = interfaces.MapInfo()
+            info.header.stamp = self.get_clock().now().to_msg()
+            info.header.frame_id = self.map_frame
+            info.map_path = str(run.map_dir if run.map_dir.is_dir() else run.root)
+            info.num_keyframes = int(summary.get("keyframes") or 0)
+            info.num_points = int(summary.get("points") or 0)
+            names = _camera_names(run)
+            info.num_cameras, info.camera_names = len(names), names
+            publisher = self.create_publisher(interfaces.MapInfo, "~/map_info", tools.LATCHED)
+            publisher.publish(info)
+            self.publishers_.append(publisher)
+            linger = ("until shut down" if self.linger_s < 0
+                      else f"for {self.linger_s:g} s")
+            self.get_logger().info(f"map done: {info.num_keyframes} keyframes, "
+                                   f"{info.num_points} points in {run.root}; results "
+                                   f"published latched, staying up {linger}")
+
+        def finished(self) -> bool:
+            if self.outcome == "failed":
+                return True
+            return (self.outcome == "done" and self.linger_s >= 0
+                    and time.monotonic() - self.finished_at >= self.linger_s)
+
+    shutdown = tools.Shutdown()
+    node = None
+    status = 0
     try:
-        defaults = {"bag": "", "out": "", "config": "", "steps": list(STAGE_NAMES),
-                    **{name: None for name in SWITCHES}}
-        values = {name: _declare(node, name, default) for name, default in defaults.items()}
-        if not values["bag"] or not values["out"]:
-            raise ConfigError("parameters 'bag' and 'out' are required "
-                              "(ros2 run cusfm_ros mapper --ros-args -p bag:=BAG -p out:=DIR)")
-        options = mapper_options_from_parameters(values)
-        report = Mapper(options).solve(values["bag"], values["out"], list(values["steps"]))
-        latched = qos.QoSProfile(depth=1, durability=qos.DurabilityPolicy.TRANSIENT_LOCAL)
-        publisher = node.create_publisher(interfaces.MapInfo, "~/map_info", latched)
-        rig = read_keyframes(RunDir(values["out"]).keyframes).rig
-        publisher.publish(map_info_message(interfaces.MapInfo, node.get_clock().now().to_msg(),
-                                           Path(values["out"]), report, rig))
-        node.get_logger().info(f"map written to {values['out']} "
-                               f"({report['summary'].get('points')} points)")
-        return 0
+        tools.init(args, signal_handler_options=SignalHandlerOptions.SIGINT)
+        node = MapperNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        shutdown.spin(executor, node.finished)
+        if node.outcome == "failed":
+            status = 1
+        elif node.outcome is None:  # stopped by a signal during the run
+            code = node.job.cancel()
+            print(f"mapper: stopped before the map was complete (worker status {code}); "
+                  f"nothing in {node.request.run_dir} looks complete that is not; rerun the "
+                  "same command to resume", file=sys.stderr)
+        elif node.job.running:
+            node.job.cancel()
+    except ConfigError as exc:
+        print(f"mapper: error: {exc}", file=sys.stderr)
+        status = 1
     except CusfmError as exc:
-        node.get_logger().error(str(exc))
-        return 1
+        print(f"mapper: error: {exc}", file=sys.stderr)
+        status = 1
     finally:
-        logging.getLogger("cusfm_ros").removeHandler(handler)
-        node.destroy_node()
-        rclpy.shutdown()
+        if node is not None:
+            if node.outcome is None:
+                node.job.cancel()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    if status == 0 and shutdown.signal is not None and (node is None or node.outcome is None):
+        tools.Shutdown.exit_by(shutdown.signal)
+    return status
+
+
+def _camera_names(run) -> list[str]:
+    from cusfm_ros.io.keyframes_file import read_keyframes
+
+    try:
+        return list(read_keyframes(run.keyframes).rig.names)
+    except (CusfmError, OSError):
+        return []
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -5,10 +5,8 @@ subscriber gets the latched MapInfo; SIGTERM ends the node with status 0."""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
-import sys
 import time
 
 import numpy as np
@@ -19,14 +17,7 @@ interfaces = pytest.importorskip("cusfm_ros_interfaces.srv")
 
 from cusfm_ros.cli.main import main  # noqa: E402
 
-DOMAIN_ID = "61"
-
-
-@pytest.fixture(scope="module")
-def ros_env():
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=DOMAIN_ID)
-    os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=DOMAIN_ID)
-    return env
+from rostools import executable  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +67,7 @@ def test_client_localizes_through_the_running_node(mapped, ros_env):
     from cusfm_ros.io.tum import read_tum
 
     sim, run = mapped
-    node = subprocess.Popen([sys.executable, "-m", "cusfm_ros.ros.localizer_node", "--ros-args",
+    node = subprocess.Popen([executable("localizer"), "--ros-args",
                              "-p", f"map_dir:={run}"], env=ros_env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
@@ -134,7 +125,7 @@ def test_client_localizes_through_the_running_node(mapped, ros_env):
 
 
 def test_missing_map_dir_is_one_line_and_exit_1(ros_env):
-    result = subprocess.run([sys.executable, "-m", "cusfm_ros.ros.localizer_node"],
+    result = subprocess.run([executable("localizer")],
                             env=ros_env, capture_output=True, text=True, timeout=60)
     assert result.returncode == 1
     assert "parameter map_dir is required" in result.stderr and "Traceback" not in result.stderr

@@ -43,10 +43,14 @@ SUPPORTED_ENCODINGS = tuple(_PLAIN_ENCODINGS) + tuple(_BAYER_TO_RGB)
 
 @functools.lru_cache(maxsize=1)
 def typestore():
-    """The ROS 2 Jazzy typestore plus cusfm_ros_interfaces' messages."""
+    """The ROS 2 Jazzy typestore plus cusfm_ros_interfaces' messages and service types."""
     from rosbags.typesys import Stores, get_typestore
 
-    return get_typestore(Stores.ROS2_JAZZY)
+    from cusfm_ros.io.bags.interfaces import interface_types
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(interface_types())
+    return store
 
 
 def msg(name: str, **fields: Any) -> Any:
