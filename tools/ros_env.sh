@@ -10,6 +10,7 @@ export AMENT_PREFIX_PATH="$venv"
 export COLCON_CURRENT_PREFIX="$root/build-ros/install"
 # shellcheck disable=SC1091
 source "$root/build-ros/install/local_setup.bash"
+unset COLCON_CURRENT_PREFIX
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-61}
 exec "$@"

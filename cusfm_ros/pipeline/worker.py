@@ -4,10 +4,12 @@ loops and could not be stopped mid-stage).
 
 ``python -m cusfm_ros.pipeline.worker`` reads one job, pickled, on stdin — a dict of
 ``options`` (the resolved ``MapperOptions`` itself, so the child runs exactly what the host
-resolved), ``bag``, ``run_dir``, ``steps`` and ``overwrite``; its own parent wrote it, so
+resolved), ``bag``, ``run_dir``, ``steps``, ``overwrite`` and ``kind`` (``map``, or
+``calibrate`` for the extrinsic calibration job); its own parent wrote it, so
 unpickling trusts nothing foreign — and writes JSON lines on stdout:
 ``{"event": "log", "level": 20, "logger": ..., "message": ...}`` for every log record,
-then ``{"event": "done", "summary": {...}}`` or ``{"event": "error", "message": ...}``.
+then ``{"event": "done", "summary": {...}, "calibration": {...} | null}`` or
+``{"event": "error", "message": ...}``.
 Exit status 0 / 1, and 143 when stopped by SIGTERM: the signal raises ``Cancelled`` in the
 pipeline so that every atomic write in progress removes its temporary file; the stage that
 was running keeps its ``running`` record and is redone by the next run (the runner's resume).
@@ -73,14 +75,23 @@ def run_job(job: dict, stream) -> int:
     root.addHandler(_JsonLines(stream))
     root.setLevel(logging.INFO)
     root.propagate = False
+    overwrite = bool(job.get("overwrite", False))
     try:
-        report = Mapper(job["options"]).solve(job.get("bag"), job["run_dir"], job.get("steps"),
-                                       bool(job.get("overwrite", False)))
+        if job.get("kind", "map") == "calibrate":
+            from cusfm_ros.pipeline.calibration import ExtrinsicCalibration
+
+            calibration = ExtrinsicCalibration(job["options"]).solve(
+                job.get("bag"), job["run_dir"], overwrite)
+            report = json.loads((Path(job["run_dir"]) / "report.json").read_text())
+        else:
+            calibration = None
+            report = Mapper(job["options"]).solve(job.get("bag"), job["run_dir"],
+                                                  job.get("steps"), overwrite)
     except CusfmError as exc:
         _emit(stream, {"event": "error", "message": str(exc)})
         return 1
     _emit(stream, {"event": "done", "summary": report["summary"],
-                   "stages": sorted(report["stages"])})
+                   "stages": sorted(report["stages"]), "calibration": calibration})
     return 0
 
 
@@ -115,11 +126,14 @@ class MapperJob:
     call (never blocks); ``cancel()`` sends SIGTERM and, after ``grace_s``, SIGKILL."""
 
     def __init__(self, options, bag: str | os.PathLike | None, run_dir: str | os.PathLike,
-                 steps: list[str] | None = None, overwrite: bool = False) -> None:
+                 steps: list[str] | None = None, overwrite: bool = False,
+                 kind: str = "map") -> None:
+        """``kind``: ``map`` (the mapper's ``steps``) or ``calibrate`` (extrinsic
+        calibration, ``pipeline/calibration.py``)."""
         self._events: list[JobEvent] = []
         self._lock = threading.Lock()
         job = {"options": options, "bag": None if bag is None else str(bag),
-               "run_dir": str(Path(run_dir)), "steps": steps, "overwrite": overwrite}
+               "run_dir": str(Path(run_dir)), "steps": steps, "overwrite": overwrite, "kind": kind}
         self.process = subprocess.Popen(
             [sys.executable, "-m", "cusfm_ros.pipeline.worker"], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, start_new_session=True)

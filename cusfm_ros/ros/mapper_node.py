@@ -28,7 +28,9 @@ from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.ros.runtime import import_ros
 
 
-def main(args: Sequence[str] | None = None) -> int:
+def main(args: Sequence[str] | None = None, kind: str = "map") -> int:
+    """``kind``: ``map`` (node ``cusfm_mapper``) or ``calibrate`` (node
+    ``extrinsic_calibration``: see ``ros/extrinsic_calibration_node.py``)."""
     rclpy = import_ros("rclpy")
     interfaces = import_ros("cusfm_ros_interfaces.msg")
     from rclpy.executors import SingleThreadedExecutor
@@ -39,13 +41,17 @@ def main(args: Sequence[str] | None = None) -> int:
     from cusfm_ros.io.run_dir import RunDir
     from cusfm_ros.pipeline.worker import MapperJob
     from cusfm_ros.ros import rclpy_tools as tools
-    from cusfm_ros.ros.parameters import mapper_request, mapper_specs
+    from cusfm_ros.ros.parameters import calibration_specs, mapper_request, mapper_specs
+
+    calibrating = kind == "calibrate"
+    program = "extrinsic_calibration" if calibrating else "mapper"
 
     class MapperNode(Node):
         def __init__(self) -> None:
-            super().__init__("cusfm_mapper")
-            values = tools.declare(self, mapper_specs())
-            self.request = mapper_request(values)
+            super().__init__(program if calibrating else "cusfm_mapper")
+            values = tools.declare(self, calibration_specs() if calibrating
+                                   else mapper_specs())
+            self.request = mapper_request(values, calibrating)
             self.linger_s = float(values["linger_s"])
             self.map_frame = values["map_frame"]
             self.outcome: str | None = None  # done | failed
@@ -55,7 +61,7 @@ def main(args: Sequence[str] | None = None) -> int:
             r = self.request
             self.get_logger().info(f"mapping {r.bag} into {r.run_dir} (stages: "
                                    f"{', '.join(r.steps)})")
-            self.job = MapperJob(r.options, r.bag, r.run_dir, r.steps, r.overwrite)
+            self.job = MapperJob(r.options, r.bag, r.run_dir, r.steps, r.overwrite, kind)
             self.create_timer(0.1, self._poll)
 
         def _poll(self) -> None:
@@ -67,6 +73,8 @@ def main(args: Sequence[str] | None = None) -> int:
                     self.outcome = "failed"
                 elif event.kind == "done":
                     self._publish_results(event.data["summary"])
+                    if event.data.get("calibration"):
+                        self._log_calibration(event.data["calibration"])
                     self.outcome, self.finished_at = "done", time.monotonic()
                 elif event.kind == "exit" and self.outcome is None:
                     self.get_logger().error(f"the mapper worker ended with status "
@@ -104,6 +112,15 @@ def main(args: Sequence[str] | None = None) -> int:
                                    f"{info.num_points} points in {run.root}; results "
                                    f"published latched, staying up {linger}")
 
+        def _log_calibration(self, report: dict) -> None:
+            from cusfm_ros.cli.calibrate import format_report
+
+            for line in format_report(report):
+                if line.startswith("warning:"):
+                    self.get_logger().warning(line)
+                else:
+                    self.get_logger().info(line)
+
         def finished(self) -> bool:
             if self.outcome == "failed":
                 return True
@@ -123,16 +140,16 @@ def main(args: Sequence[str] | None = None) -> int:
             status = 1
         elif node.outcome is None:  # stopped by a signal during the run
             code = node.job.cancel()
-            print(f"mapper: stopped before the map was complete (worker status {code}); "
+            print(f"{program}: stopped before the map was complete (worker status {code}); "
                   f"nothing in {node.request.run_dir} looks complete that is not; rerun the "
                   "same command to resume", file=sys.stderr)
         elif node.job.running:
             node.job.cancel()
     except ConfigError as exc:
-        print(f"mapper: error: {exc}", file=sys.stderr)
+        print(f"{program}: error: {exc}", file=sys.stderr)
         status = 1
     except CusfmError as exc:
-        print(f"mapper: error: {exc}", file=sys.stderr)
+        print(f"{program}: error: {exc}", file=sys.stderr)
         status = 1
     finally:
         if node is not None:

@@ -134,10 +134,22 @@ class MapperRequest:
     overwrite: bool
 
 
-def mapper_request(values: dict[str, Any]) -> MapperRequest:
-    """The mapper's job from its parameter values, through the command line's resolver."""
+def calibration_specs() -> list[ParameterSpec]:
+    """The extrinsic_calibration node's: the mapper's less ``steps`` (it runs up to export)
+    and less the switches calibration sets itself."""
+    fixed = {"steps", "optimize_extrinsics", "frame_type", "rolling_shutter_line_delay_s"}
+    return [spec for spec in mapper_specs() if spec.name not in fixed]
+
+
+def mapper_request(values: dict[str, Any], calibrate: bool = False) -> MapperRequest:
+    """The mapper's (or the calibration's) job from its parameter values, through the
+    command line's resolver."""
     from cusfm_ros.pipeline.mapper import STAGE_NAMES
     from cusfm_ros.pipeline.options import resolve_options, set_overrides, switch_overrides
+
+    if calibrate:
+        from cusfm_ros.pipeline.calibration import CALIBRATION_STEPS
+        values = {**values, "steps": list(CALIBRATION_STEPS)}
 
     if not values.get("bag") or not values.get("out"):
         raise ConfigError("parameters bag and out are required (ros2 run cusfm_ros mapper "
@@ -152,5 +164,8 @@ def mapper_request(values: dict[str, Any]) -> MapperRequest:
     overrides.update(set_overrides(list(values.get("set") or []), "parameter set:"))
     options = resolve_options(values.get("config") or None, overrides,
                               overrides_source="parameters")
+    if calibrate:
+        from cusfm_ros.pipeline.calibration import calibration_options
+        options = calibration_options(options)
     return MapperRequest(options, str(values["bag"]), str(values["out"]),
                          [s for s in STAGE_NAMES if s in steps], bool(values.get("overwrite")))

@@ -187,3 +187,46 @@ def test_malformed_params_file_is_one_line(tmp_path, ros_env):
     assert result.returncode == 1, result.stderr
     assert "cannot parse the ROS arguments" in result.stderr, result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_extrinsic_calibration_node_publishes_the_refined_tf(tmp_path, ros_env, models_ready):
+    from cusfm_ros.sim.generator import SimulationOptions, Simulator
+    from tf2_msgs.msg import TFMessage
+
+    from cusfm_ros.core.geometry import Rigid3
+    from cusfm_ros.io.extrinsics_yaml import read_extrinsics
+    from cusfm_ros.ros.rclpy_tools import LATCHED
+
+    sim = Simulator(SimulationOptions(scene="indoor", rig="stereo", frames=30,
+                                      image_width=320, image_height=240,
+                                      extrinsic_noise=(0.02, 1.0), seed=3)).generate(
+        tmp_path / "sim")
+    run = tmp_path / "run"
+    command = [executable("extrinsic_calibration"), "--ros-args", "-p", f"bag:={sim / 'bag'}",
+               "-p", f"out:={run}", "-p", "max_keypoints:=1024"]
+    node = subprocess.Popen(command, env=ros_env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    rclpy.init()
+    client = rclpy.create_node("test_calibration_client")
+    received = []
+    try:
+        assert _spin_until(client, lambda: (run / "calibration.json").is_file(), 240)
+        client.create_subscription(TFMessage, "/tf_static", received.append, LATCHED)
+        assert _spin_until(client, lambda: bool(received), 30)
+    finally:
+        client.destroy_node()
+        rclpy.try_shutdown()
+        code, output = _stop(node)
+    assert code == 0 and "Traceback" not in output, output
+    assert "front_stereo_left -> front_stereo_right" in output  # the report, logged
+    refined = read_extrinsics(run / "extrinsics.yaml")
+    by_frame = {c.frame_id: c.rig_from_cam for c in refined.cameras.values()}
+    recorded = {}
+    for t in received[0].transforms:
+        q, p = t.transform.rotation, t.transform.translation
+        recorded[t.child_frame_id] = Rigid3.from_quat_xyzw(np.array([q.x, q.y, q.z, q.w]),
+                                                           np.array([p.x, p.y, p.z]))
+    assert set(recorded) == set(by_frame)
+    for frame, pose in recorded.items():
+        np.testing.assert_allclose(pose.matrix(), by_frame[frame].matrix(), atol=1e-9)
+    assert not (run / "map").exists()  # calibration stops at export

@@ -49,6 +49,9 @@ class BundleOptions:
     absolute_prior_sigma_deg: float = 5.0
     extrinsic_prior_sigma_m: float = 0.1
     extrinsic_prior_sigma_deg: float = 3.0
+    extrinsic_covariance: bool = False
+    """With extrinsic refinement: the marginal covariance of every refined extrinsic after
+    the final adjustment (how well the data pins each camera down; calibration reports)."""
     max_iterations: int = 30
     relative_tolerance: float = 1e-6
 
@@ -150,6 +153,23 @@ class BundleResult:
     error_before: float
     error_after: float
     iterations: int
+    sensor_covariance: np.ndarray | None = None
+    """(6S, 6S) joint marginal covariance of the refined node_from_sensor, per sensor gtsam's
+    tangent order (rotation, translation) in the sensor's own frame; NaN for sensors without
+    images."""
+
+
+def covariance_in_parent(covariance: np.ndarray, parent_from_child: np.ndarray) -> np.ndarray:
+    """A joint gtsam Pose3 marginal (per pose: rotation, translation tangent in the child's
+    own frame) as the covariance in ROS order (x, y, z, rot_x, rot_y, rot_z) along the
+    parent's axes. ``parent_from_child``: (S, 4, 4) for a (6S, 6S) covariance."""
+    poses = np.asarray(parent_from_child, np.float64).reshape(-1, 4, 4)
+    change = np.zeros((6 * len(poses),) * 2)
+    for s, pose in enumerate(poses):
+        block = change[6 * s:6 * s + 6, 6 * s:6 * s + 6]
+        block[:3, 3:] = pose[:3, :3]  # translation part of the tangent (its last three)
+        block[3:, :3] = pose[:3, :3]
+    return change @ np.asarray(covariance, np.float64) @ change.T
 
 
 def _noise_sigmas(sigma_deg, sigma_m) -> np.ndarray:
@@ -172,7 +192,10 @@ class BundleAdjuster:
                      else gtsam.noiseModel.mEstimator.Cauchy.Create(k))
         return gtsam.noiseModel.Robust.Create(estimator, base)
 
-    def solve(self, problem: BundleProblem, robust: bool = True) -> BundleResult:
+    def solve(self, problem: BundleProblem, robust: bool = True,
+              covariance: bool = False) -> BundleResult:
+        """Adjust; ``covariance`` (with extrinsic refinement) also returns the marginal
+        covariance of the refined extrinsics."""
         import gtsam
         import gtsam_unstable
 
@@ -263,5 +286,17 @@ class BundleAdjuster:
                 node_from_sensor[s] = result.atPose3(e(s)).matrix()
         points = np.stack([result.atPoint3(p(i)) for i in range(len(pr.points))]) if len(
             pr.points) else np.zeros((0, 3))
+        sensor_covariance = None
+        if covariance and pr.optimize_extrinsics:
+            used = sorted(set(pr.image_sensor.tolist()))
+            sensor_covariance = np.full((6 * len(node_from_sensor),) * 2, np.nan)
+            try:
+                joint = gtsam.Marginals(graph, result).jointMarginalCovariance(
+                    [e(s) for s in used]).fullMatrix()
+                index = np.concatenate([np.arange(6 * s, 6 * s + 6) for s in used])
+                sensor_covariance[np.ix_(index, index)] = joint
+            except RuntimeError as exc:  # indeterminate system: leave NaN, say why
+                logger.warning("bundle adjustment: no extrinsic covariance (%s)", exc)
         return BundleResult(world_from_node, node_from_sensor, points, float(error_before),
-                            float(error_after), int(optimizer.iterations()))
+                            float(error_after), int(optimizer.iterations()),
+                            sensor_covariance)

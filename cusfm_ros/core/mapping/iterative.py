@@ -73,6 +73,8 @@ class MappingResult:
     """(M,) observation used in the final adjustment."""
     rounds: list[dict]
     seconds: float
+    sensor_covariance: np.ndarray | None = None
+    """(6S, 6S) of the final adjustment when asked (``BundleResult.sensor_covariance``)."""
 
 
 class IterativeMapper:
@@ -174,7 +176,8 @@ class IterativeMapper:
             if stage == 2:  # the strict stage starts from the strictly filtered set
                 active, _, _ = self._filter(data, poses, points, threshold_px)
             problem, tracks = self._problem(data, poses, points, active)
-            result = adjuster.solve(problem, robust=robust)
+            result = adjuster.solve(problem, robust=robust,
+                                    covariance=stage == 2 and self.bundle.extrinsic_covariance)
             poses = replace(poses, world_from_node=result.world_from_node,
                             node_from_sensor=result.node_from_sensor)
             points[tracks] = result.points
@@ -210,7 +213,7 @@ class IterativeMapper:
             raise MappingError(f"mapping kept only {int(np.isfinite(points[:, 0]).sum())} "
                                f"points after outlier removal (need {o.min_points})")
         return MappingResult(poses.world_from_node, poses.node_from_sensor, points, active,
-                             rounds, time.perf_counter() - started)
+                             rounds, time.perf_counter() - started, result.sensor_covariance)
 
 
 def empty_template(world_from_node, node_from_sensor, image_node, image_sensor,

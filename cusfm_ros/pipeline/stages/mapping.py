@@ -19,7 +19,7 @@ import numpy as np
 from cusfm_ros.core.features.types import Matches
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.keyframes import KeyframeSet
-from cusfm_ros.core.mapping.bundle_adjustment import BundleOptions
+from cusfm_ros.core.mapping.bundle_adjustment import BundleOptions, covariance_in_parent
 from cusfm_ros.core.mapping.iterative import IterativeMapper, IterativeMappingOptions
 from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.core.mapping.structure import (build_observations, build_pose_structure,
@@ -84,6 +84,10 @@ class MappingOutput:
     points: MapPoints
     counts: dict
     summary: dict
+    extrinsic_covariance: np.ndarray | None = None
+    """(6S, 6S) joint covariance of every camera's base_link_from_cam (rig order), ROS order
+    along base_link's axes (with ``bundle_adjustment.extrinsic_covariance`` and extrinsic
+    refinement)."""
 
 
 def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
@@ -122,6 +126,9 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
         names = keyframes.rig.names
         rig_from_cam = {names[s]: Rigid3.from_matrix(result.node_from_sensor[s])
                         for s in range(len(names))}
+    covariance = None
+    if options.optimize_extrinsics and result.sensor_covariance is not None:
+        covariance = covariance_in_parent(result.sensor_covariance, result.node_from_sensor)
     quality = mapping_quality(structure, world_from_rig, result, options.max_pose_change_m,
                               options.max_odometry_scale_change)
     reprojection, per_observation = pixel_errors(keyframes, structure, observations, result)
@@ -139,12 +146,17 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
     summary = {"counts": counts, "quality": quality, "reprojection_px": reprojection,
                "rounds": result.rounds,
                "view_graph_component_sizes": observations.component_sizes}
+    if covariance is not None:
+        summary["extrinsic_covariance"] = {
+            "cameras": list(keyframes.rig.names), "order": "x y z rot_x rot_y rot_z per camera",
+            "matrix": np.where(np.isfinite(covariance), covariance, None).tolist()}
     return MappingOutput(Trajectory(structure.sample_stamps_ns, world_from_rig), rig_from_cam,
-                         points, {**counts, **quality}, summary)
+                         points, {**counts, **quality}, summary, covariance)
 
 
 class MappingStage(Stage):
     name = "mapping"
+    version = 2  # 2: summary.json keeps the joint extrinsic covariance when asked
     sections = {"mapping": MappingStageOptions, "refinement": IterativeMappingOptions,
                 "bundle_adjustment": BundleOptions}
     reads = ("mapping", "refinement", "bundle_adjustment", "frame_type")
