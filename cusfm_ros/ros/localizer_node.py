@@ -2,7 +2,12 @@
 ``cusfm map``.
 
 Parameters (read-only): ``map_dir`` (string, required: a run directory or its ``map/``),
-``map_frame`` (default ``map``), ``device`` (auto | cpu | cuda), ``model_dir``. The map is
+``map_frame`` (default ``map``), ``device`` (auto | cpu | cuda), ``model_dir``, and for
+continuous localization ``image_topics`` with ``camera_names`` (one map camera per topic;
+every image is localized — the newest one per topic while a query runs — and the pose is
+published as ``geometry_msgs/PoseWithCovarianceStamped`` on ``~/pose``), ``odom_topic``
+(nav_msgs/Odometry; then ``map -> odom`` is broadcast on ``/tf`` for every localized image,
+``ros/map_to_odom.py``) and ``odom_frame`` (default: the odometry's own frame_id). The map is
 loaded once; ``cusfm_ros_interfaces/srv/LocalizeImage`` is served on ``~/localize`` in a
 reentrant callback group under a MultiThreadedExecutor (the ``Localizer`` is thread-safe), and
 a ``cusfm_ros_interfaces/MapInfo`` is published latched on ``~/map_info``. Request handling
@@ -32,7 +37,12 @@ def _to_rclpy(message, msgtype: str, rclpy_type):
 
 def main(args: Sequence[str] | None = None) -> int:
     rclpy = import_ros("rclpy")
-    from rclpy.callback_groups import ReentrantCallbackGroup
+    from types import SimpleNamespace
+
+    import numpy as np
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+    from rclpy.exceptions import ParameterUninitializedException
+    from rclpy.qos import qos_profile_sensor_data
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -40,11 +50,15 @@ def main(args: Sequence[str] | None = None) -> int:
     interfaces = import_ros("cusfm_ros_interfaces.srv")
     messages = import_ros("cusfm_ros_interfaces.msg")
     geometry = import_ros("geometry_msgs.msg")
+    sensor = import_ros("sensor_msgs.msg")
+    nav = import_ros("nav_msgs.msg")
     from rcl_interfaces.msg import ParameterDescriptor
 
     from cusfm_ros.io.ros_conversions import POSE_WITH_COVARIANCE_STAMPED
     from cusfm_ros.pipeline.localization import load_localizer
+    from cusfm_ros.core.geometry import Rigid3
     from cusfm_ros.ros.localize_service import LocalizeService
+    from cusfm_ros.ros.map_to_odom import OdometryBuffer, map_from_odom
 
     class LocalizerNode(Node):
         def __init__(self) -> None:
@@ -54,6 +68,10 @@ def main(args: Sequence[str] | None = None) -> int:
             self.map_frame = self.declare_parameter("map_frame", "map", read_only).value
             device = self.declare_parameter("device", "auto", read_only).value
             model_dir = self.declare_parameter("model_dir", "", read_only).value
+            topics = self._string_array("image_topics")
+            cameras = self._string_array("camera_names")
+            odom_topic = self.declare_parameter("odom_topic", "", read_only).value
+            self.odom_frame = self.declare_parameter("odom_frame", "", read_only).value
             if not map_dir:
                 raise CusfmError("parameter map_dir is required (a run directory of `cusfm map`"
                                  " or its map/): -p map_dir:=/data/run1")
@@ -72,8 +90,94 @@ def main(args: Sequence[str] | None = None) -> int:
             self.info_publisher.publish(info)
             self.create_service(interfaces.LocalizeImage, "~/localize", self._localize,
                                 callback_group=ReentrantCallbackGroup())
+            self._stream(topics, cameras, odom_topic)
             self.get_logger().info(f"serving ~/localize on a map of {info.num_keyframes} "
                                    f"keyframes and {info.num_points} points ({map_dir})")
+
+        def _string_array(self, name):
+            from rclpy.parameter import Parameter
+
+            descriptor = ParameterDescriptor(read_only=True,
+                                             type=Parameter.Type.STRING_ARRAY.value)
+            self.declare_parameter(name, Parameter.Type.STRING_ARRAY, descriptor)
+            try:
+                return list(self.get_parameter(name).value or [])
+            except ParameterUninitializedException:
+                return []
+
+        def _stream(self, topics, cameras, odom_topic) -> None:
+            """Subscriptions for continuous localization (none without image_topics)."""
+            if len(topics) != len(cameras):
+                raise CusfmError(f"parameters image_topics ({len(topics)}) and camera_names "
+                                 f"({len(cameras)}) must pair up: one map camera per topic")
+            unknown = [c for c in cameras if c not in self.service.rig]
+            if unknown:
+                raise CusfmError(f"parameter camera_names: {unknown} not in the map (its "
+                                 f"cameras: {', '.join(self.service.rig.names)})")
+            self.odometry = OdometryBuffer() if odom_topic else None
+            self.pose_publisher = self.create_publisher(
+                geometry.PoseWithCovarianceStamped, "~/pose", 10) if topics else None
+            self.tf_publisher = None
+            if odom_topic:
+                self.create_subscription(nav.Odometry, odom_topic, self._odometry, 50)
+                try:
+                    from tf2_ros.transform_broadcaster import TransformBroadcaster
+                    self.tf_publisher = TransformBroadcaster(self)
+                except ImportError:
+                    from tf2_msgs.msg import TFMessage
+                    self.tf_publisher = self.create_publisher(TFMessage, "/tf", 100)
+            for topic, camera in zip(topics, cameras):
+                group = MutuallyExclusiveCallbackGroup()  # one query per topic at a time
+                self.create_subscription(
+                    sensor.Image, topic, lambda msg, c=camera: self._image(msg, c),
+                    qos_profile_sensor_data, callback_group=group)
+                self.get_logger().info(f"localizing every image of {topic} as {camera}")
+
+        def _odometry(self, message) -> None:
+            p, q = message.pose.pose.position, message.pose.pose.orientation
+            stamp = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
+            self.odometry.add(stamp, Rigid3.from_quat_xyzw(
+                np.array([q.x, q.y, q.z, q.w]), np.array([p.x, p.y, p.z])))
+            if not self.odom_frame:
+                self.odom_frame = message.header.frame_id or "odom"
+
+        def _image(self, image, camera) -> None:
+            try:
+                request = SimpleNamespace(images=[image], camera_names=[camera], prior=None,
+                                          prior_radius_m=0.0)
+                answer = self.service.handle(request)
+                if not answer.success:
+                    self.get_logger().warning(f"{camera}: {answer.message}")
+                    return
+                pose = _to_rclpy(self.service.response_pose(answer),
+                                 POSE_WITH_COVARIANCE_STAMPED, geometry.PoseWithCovarianceStamped)
+                self.pose_publisher.publish(pose)
+                if self.odometry is not None:
+                    self._broadcast_map_to_odom(answer, pose.header)
+            except Exception as exc:  # never let one image take the node down
+                self.get_logger().error(f"{camera}: internal error: {exc!r}")
+
+        def _broadcast_map_to_odom(self, answer, header) -> None:
+            odom_from_base = self.odometry.at(answer.stamp_ns)
+            if odom_from_base is None:
+                self.get_logger().warning("no odometry at the image's stamp: map -> odom not "
+                                          "updated")
+                return
+            pose = map_from_odom(answer.map_from_base_link, odom_from_base)
+            transform = geometry.TransformStamped()
+            transform.header = header
+            transform.child_frame_id = self.odom_frame or "odom"
+            t, q = pose.translation, pose.quat_xyzw()
+            transform.transform.translation.x, transform.transform.translation.y, \
+                transform.transform.translation.z = (float(v) for v in t)
+            (transform.transform.rotation.x, transform.transform.rotation.y,
+             transform.transform.rotation.z, transform.transform.rotation.w) = (
+                float(v) for v in q)
+            if hasattr(self.tf_publisher, "sendTransform"):
+                self.tf_publisher.sendTransform(transform)
+            else:
+                from tf2_msgs.msg import TFMessage
+                self.tf_publisher.publish(TFMessage(transforms=[transform]))
 
         def _localize(self, request, response):
             try:

@@ -68,7 +68,9 @@ def test_client_localizes_through_the_running_node(mapped, ros_env):
 
     sim, run = mapped
     node = subprocess.Popen([executable("localizer"), "--ros-args",
-                             "-p", f"map_dir:={run}"], env=ros_env,
+                             "-p", f"map_dir:={run}", "-p", "image_topics:=[/test_cam/image]",
+                             "-p", f"camera_names:=[{_second_drive_image(sim)[1]}]",
+                             "-p", "odom_topic:=/test_odom"], env=ros_env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     client_node = rclpy.create_node("test_localize_client")
@@ -110,6 +112,47 @@ def test_client_localizes_through_the_running_node(mapped, ros_env):
         while not received and time.monotonic() < deadline:
             rclpy.spin_once(client_node, timeout_sec=0.2)
         assert received and received[0].num_keyframes > 0 and received[0].camera_names
+        # continuous localization: an image on the topic -> ~/pose, and map -> odom on /tf
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import Image
+        from tf2_msgs.msg import TFMessage
+
+        poses, transforms = [], []
+        client_node.create_subscription(PoseWithCovarianceStamped, "/localizer/pose",
+                                        poses.append, 10)
+        client_node.create_subscription(TFMessage, "/tf", transforms.append, 10)
+        odom = client_node.create_publisher(Odometry, "/test_odom", 10)
+        images = client_node.create_publisher(Image, "/test_cam/image", 10)
+        odom_from_base = Rigid3.from_rotvec(np.array([0, 0, 0.3]), np.array([1.0, 2.0, 0.0]))
+        deadline = time.monotonic() + 60
+        while not (poses and transforms) and time.monotonic() < deadline:
+            for offset in (-10**8, 10**8):  # odometry around the image's stamp
+                message = Odometry()
+                message.header.frame_id = "odom"
+                message.header.stamp.sec, message.header.stamp.nanosec = divmod(
+                    stamp + offset, 10**9)
+                t, q = odom_from_base.translation, odom_from_base.quat_xyzw()
+                message.pose.pose.position.x, message.pose.pose.position.y = t[0], t[1]
+                (message.pose.pose.orientation.x, message.pose.pose.orientation.y,
+                 message.pose.pose.orientation.z, message.pose.pose.orientation.w) = q
+                odom.publish(message)
+            images.publish(_image_msg(pixels, stamp))
+            end = time.monotonic() + 3
+            while not (poses and transforms) and time.monotonic() < end:
+                rclpy.spin_once(client_node, timeout_sec=0.2)
+        assert poses and transforms, (len(poses), len(transforms))
+        q, p = poses[0].pose.pose.orientation, poses[0].pose.pose.position
+        streamed = Rigid3.from_quat_xyzw(np.array([q.x, q.y, q.z, q.w]),
+                                         np.array([p.x, p.y, p.z]))
+        assert np.linalg.norm(streamed.translation - world_from_base.translation) < 0.3
+        tf = transforms[0].transforms[0]
+        assert (tf.header.frame_id, tf.child_frame_id) == ("map", "odom")
+        q, p = tf.transform.rotation, tf.transform.translation
+        map_from_odom = Rigid3.from_quat_xyzw(np.array([q.x, q.y, q.z, q.w]),
+                                              np.array([p.x, p.y, p.z]))
+        np.testing.assert_allclose((map_from_odom * odom_from_base).matrix(),
+                                   streamed.matrix(), atol=1e-6)
     finally:
         client_node.destroy_node()
         rclpy.try_shutdown()
