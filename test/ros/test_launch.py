@@ -13,6 +13,8 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("launch_ros")
 
+from rostools import ros_env  # noqa: E402,F401
+
 LAUNCH = textwrap.dedent("""
     import sys
     from ament_index_python.packages import get_package_share_directory

@@ -17,7 +17,7 @@ interfaces = pytest.importorskip("cusfm_ros_interfaces.srv")
 
 from cusfm_ros.cli.main import main  # noqa: E402
 
-from rostools import executable  # noqa: E402
+from rostools import executable, ros_env  # noqa: E402,F401
 
 
 @pytest.fixture(scope="module")

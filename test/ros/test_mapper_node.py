@@ -16,7 +16,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("cusfm_ros_interfaces.msg")
 
-from rostools import executable  # noqa: E402
+from rostools import executable, ros_env  # noqa: E402,F401
 
 
 @pytest.fixture(scope="module")
