@@ -1,7 +1,7 @@
 """The mapper node on real rclpy, run as ``ros2 run`` runs it (the colcon install): a late
 subscriber gets the latched refined Path, initial Path, PointCloud2, /tf_static and MapInfo,
-equal to the run's files; the parameter services answer while the pipeline runs; SIGTERM
-during the run stops it promptly with nothing that looks complete; bad parameters are one
+equal to the run's files; the parameter services answer while the pipeline runs; SIGTERM or
+SIGINT during the run stops it promptly with nothing that looks complete; bad parameters are one
 line and exit 1."""
 
 from __future__ import annotations
@@ -137,8 +137,9 @@ def test_late_subscriber_gets_the_latched_results(sim, tmp_path, ros_env, models
     assert info.map_path == str(run / "map")
 
 
-def test_sigterm_during_the_run_stops_promptly_leaving_nothing_complete(sim, tmp_path,
-                                                                        ros_env, models_ready):
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_signal_during_the_run_stops_promptly_leaving_nothing_complete(sim, tmp_path, ros_env,
+                                                                       models_ready, signum):
     run = tmp_path / "run"
     mapper = _start(ros_env, f"bag:={sim / 'bag'}", f"out:={run}", "max_keypoints:=512")
     deadline = time.monotonic() + 120
@@ -147,9 +148,10 @@ def test_sigterm_during_the_run_stops_promptly_leaving_nothing_complete(sim, tmp
     assert mapper.poll() is None, mapper.stdout.read()
     time.sleep(0.5)
     stopped = time.monotonic()
+    mapper.send_signal(signum)  # SIGINT: what Ctrl-C sends
     code, output = _stop(mapper)
     assert time.monotonic() - stopped < 10
-    assert code == -signal.SIGTERM, output
+    assert code == -signum, output
     assert "Traceback" not in output and "rerun the same command to resume" in output, output
     for name in ("report.json", "poses.tum", "results.mcap", "points.ply", "map"):
         assert not (run / name).exists(), name
