@@ -65,70 +65,13 @@ def test_stage_order_and_option_errors_are_named(rolling_shutter_bag, tmp_path, 
     assert not (run / "poses.tum").exists() and not (run / "sparse").exists()
 
 
-class _FakeRos:
-    """Just enough of rclpy for the mapper node's adapter logic (no ROS here)."""
+def test_mapper_node_parameters_resolve_like_the_switches():
+    """The node's logic without ROS (the node itself: test/ros/test_mapper_node.py)."""
+    from cusfm_ros.ros.parameters import mapper_request, mapper_specs
 
-    def __init__(self, parameters):
-        import types
-
-        self.parameters, self.published, self.logs = parameters, [], []
-        fake = self
-
-        class Node:
-            def declare_parameter(self, name, default):
-                return types.SimpleNamespace(value=fake.parameters.get(name, default))
-
-            def get_logger(self):
-                return types.SimpleNamespace(
-                    info=lambda m: fake.logs.append(("info", m)),
-                    warning=lambda m: fake.logs.append(("warning", m)),
-                    error=lambda m: fake.logs.append(("error", m)))
-
-            def create_publisher(self, kind, topic, qos):
-                return types.SimpleNamespace(publish=lambda m: fake.published.append((topic, m)))
-
-            def get_clock(self):
-                return types.SimpleNamespace(now=lambda: types.SimpleNamespace(
-                    to_msg=lambda: "stamp"))
-
-            def destroy_node(self):
-                pass
-
-        class MapInfo:
-            def __init__(self):
-                self.header = types.SimpleNamespace(stamp=None, frame_id="")
-
-        self.modules = {
-            "rclpy": types.SimpleNamespace(init=lambda args=None: None,
-                                           create_node=lambda name: Node(),
-                                           shutdown=lambda: None),
-            "rclpy.qos": types.SimpleNamespace(QoSProfile=lambda **kw: kw,
-                                               DurabilityPolicy=types.SimpleNamespace(
-                                                   TRANSIENT_LOCAL="transient_local")),
-            "cusfm_ros_interfaces.msg": types.SimpleNamespace(MapInfo=MapInfo)}
-
-
-def test_mapper_node_runs_the_pipeline_and_publishes_map_info(rolling_shutter_bag, tmp_path,
-                                                              monkeypatch):
-    import sys
-
-    from cusfm_ros.ros import mapper_node
-
-    run = tmp_path / "run"
-    ros = _FakeRos({"bag": str(rolling_shutter_bag / "bag"), "out": str(run),
-                    "steps": ["keyframes"], "frame_type": "camera"})
-    for name, module in ros.modules.items():
-        monkeypatch.setitem(sys.modules, name, module)
-    assert mapper_node.main([]) == 0
-    (topic, message), = ros.published
-    assert topic == "~/map_info" and message.map_path == str(run)
-    assert message.num_keyframes == 60 and message.camera_names == ["front_stereo_left",
-                                                                    "front_stereo_right"]
-    assert any("keyframes" in text for level, text in ros.logs if level == "info")
-    ros.parameters = {"bag": "", "out": str(run)}
-    assert mapper_node.main([]) == 1
-    assert "parameters 'bag' and 'out' are required" in ros.logs[-1][1]
-    options = mapper_node.mapper_options_from_parameters(
-        {"frame_type": "camera", "rgb": True, "rolling_shutter_line_delay_s": 1e-5})
+    values = {spec.name: spec.default for spec in mapper_specs()}
+    values.update(bag="bag", out="run", frame_type="camera", rgb=True,
+                  rolling_shutter_line_delay_s=1e-5)
+    options = mapper_request(values).options
     assert options.frame_type == "camera"
     assert options.export.rgb and options.mapping.rolling_shutter_line_delay_s == 1e-5

@@ -137,7 +137,12 @@ def _cli_options(argv):
 
 
 def test_option_precedence_booleans_and_cli_equals_node(tmp_path):
-    from cusfm_ros.ros.mapper_node import mapper_options_from_parameters
+    from cusfm_ros.ros.parameters import mapper_request, mapper_specs
+
+    def mapper_options_from_parameters(given):
+        values = {spec.name: spec.default for spec in mapper_specs()}
+        values.update({"bag": "bag", "out": "run", **given})
+        return mapper_request(values).options
 
     preset = tmp_path / "preset.yaml"
     preset.write_text("frame_type: rig\nexport: {rgb: true, colmap_binary: true}\n"

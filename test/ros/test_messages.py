@@ -1,5 +1,6 @@
 """The conversions and our own interfaces through real rclpy serialization: every message the
-project builds (rosbags typestore) deserializes in rclpy and comes back field for field; cusfm_ros_interfaces' types in the typestore carry rosidl's RIHS01 hashes."""
+project builds (rosbags typestore) deserializes in rclpy and comes back field for field;
+cusfm_ros_interfaces' types in the typestore carry rosidl's RIHS01 hashes."""
 
 from __future__ import annotations
 
