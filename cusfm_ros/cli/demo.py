@@ -15,7 +15,7 @@ from pathlib import Path
 from cusfm_ros.core.evaluation import AteOptions, absolute_trajectory_error
 from cusfm_ros.io.bags.summary import format_summary, summarize
 from cusfm_ros.io.tum import read_tum
-from cusfm_ros.pipeline.mapper import Mapper
+from cusfm_ros.pipeline.mapper import Mapper, write_page
 from cusfm_ros.pipeline.options import preset_path, resolve_options
 from cusfm_ros.sim.generator import SimulationOptions, Simulator
 
@@ -62,9 +62,10 @@ def run(args: argparse.Namespace) -> int:
         ate = {label: absolute_trajectory_error(truth, read_tum(run_dir / f),
                                                 AteOptions(align="se3"))
                for label, f in (("input", "initial_poses.tum"), ("refined", "poses.tum"))}
-        report.append((name, run_dir, result, ate))
+        page = write_page(run_dir, data / "ground_truth.tum")
+        report.append((name, run_dir, result, ate, page))
     print("Demo results (ATE RMSE against ground truth, se3-aligned):")
-    for name, run_dir, result, ate in report:
+    for name, run_dir, result, ate, page in report:
         summary = result["summary"]
         print(f"  {name}: {summary['keyframes']} keyframe images, {summary['pairs']} pairs, "
               f"{summary['points']} points, mean reprojection error "
@@ -73,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
               f"{ate['refined'].rmse:.3f} m ({ate['refined'].n} poses)")
         print(f"      outputs: {run_dir}/poses.tum, sparse/, points.ply, extrinsics.yaml, "
               "report.json")
+        if page is not None:
+            print(f"      report: {page}")
     print(f"Bags and ground truth: {out}/<dataset>/ ; evaluate yourself with "
           f"`cusfm evaluate {out}/street_stereo/ground_truth.tum "
           f"{out}/street_stereo_run/poses.tum`")

@@ -13,11 +13,11 @@ from collections.abc import Sequence
 
 from cusfm_ros import __version__
 from cusfm_ros.cli import (calibrate, convert, demo, evaluate, inspect, keyframes, localize, map,
-                           map_update, match, models, simulate, vocab)
+                           map_update, match, models, report, simulate, vocab)
 from cusfm_ros.errors import CusfmError
 
 SUBCOMMANDS = (simulate, convert, inspect, keyframes, map, map_update, localize, calibrate,
-               match, models, vocab, evaluate, demo)
+               match, models, vocab, evaluate, report, demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,15 +26,20 @@ def build_parser() -> argparse.ArgumentParser:
         description="Offline visual mapping, extrinsic refinement and localization "
                     "from ROS 2 bags (cuSfM design).")
     parser.add_argument("--version", action="version", version=f"cusfm {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    loudness = parser.add_mutually_exclusive_group()
+    loudness.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    loudness.add_argument("-q", "--quiet", action="store_true",
+                          help="warnings and errors only (no progress)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in SUBCOMMANDS:
         module.add_parser(subparsers)
     return parser
 
 
-def configure_logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+def configure_logging(verbose: bool, quiet: bool = False) -> None:
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    logging.getLogger("cusfm_ros").setLevel(level)  # also where logging is set up already
+    logging.basicConfig(level=level,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S", stream=sys.stderr)
 
@@ -42,7 +47,7 @@ def configure_logging(verbose: bool) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    configure_logging(args.verbose)
+    configure_logging(args.verbose, args.quiet)
     try:
         return int(args.run(args) or 0)
     except CusfmError as exc:

@@ -7,6 +7,7 @@ runner's (``pipeline/runner.py``). Stages: see ``pipeline/registry.py``.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from cusfm_ros.pipeline.options import MapperOptions
@@ -14,6 +15,7 @@ from cusfm_ros.pipeline.registry import STAGE_NAMES, STAGES
 from cusfm_ros.pipeline.runner import StageRunner
 
 __all__ = ["STAGE_NAMES", "Mapper", "MapperOptions"]
+logger = logging.getLogger(__name__)
 
 
 class Mapper:
@@ -22,5 +24,22 @@ class Mapper:
 
     def solve(self, bag: str | Path | None, run_dir: str | Path,
               steps: list[str] | None = None, overwrite: bool = False) -> dict:
-        """Run ``steps`` (default: all) of the mapper; returns the report (report.json)."""
-        return StageRunner(STAGES, self.options).solve(run_dir, bag, steps, overwrite)
+        """Run ``steps`` (default: all) of the mapper; returns the report (report.json) and,
+        once the results are exported, writes ``report.html`` beside it."""
+        report = StageRunner(STAGES, self.options).solve(run_dir, bag, steps, overwrite)
+        if "export" in report["stages"]:
+            write_page(run_dir)
+        return report
+
+
+def write_page(run_dir: str | Path, ground_truth: str | Path | None = None) -> Path | None:
+    """report.html; a failure to draw is a warning, never a failed map."""
+    from cusfm_ros.report.page import write_report_page
+
+    try:
+        path = write_report_page(run_dir, ground_truth)
+    except Exception as exc:  # noqa: BLE001 - the map is done; the page is a view of it
+        logger.warning("report.html not written (%s: %s)", type(exc).__name__, exc)
+        return None
+    logger.info("report: %s", path)
+    return path

@@ -105,6 +105,7 @@ def _watch_parent(parent: int) -> None:
 def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _raise_cancelled)
+    os.environ["CUSFM_PROGRESS"] = "lines"  # progress as log records: they reach the host
     threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True).start()
     stream = sys.stdout
     sys.stdout = sys.stderr  # stray prints must not corrupt the event stream

@@ -1,0 +1,83 @@
+"""report.html: written by every `cusfm map` that exports, rebuilt by `cusfm report`, with the
+figures the run's data allows; a real headless Chromium (Debian's package; skipped where it
+is not installed) loads the page and every figure decodes."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from cusfm_ros.cli.main import main
+
+
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory, models_ready):
+    from cusfm_ros.sim.generator import SimulationOptions, Simulator
+
+    root = tmp_path_factory.mktemp("report")
+    sim = Simulator(SimulationOptions(scene="indoor", rig="stereo", frames=30,
+                                      image_width=320, image_height=240)).generate(
+        root / "sim")
+    run = root / "run"
+    assert main(["map", str(sim / "bag"), "--out", str(run), "--max-keypoints", "512",
+                 "--rgb"]) == 0
+    return sim, run
+
+
+FIGURES = ("trajectory-top", "trajectory-side", "stage-times", "reprojection", "track-length",
+           "cloud")
+
+
+def test_map_writes_the_page_and_report_adds_the_ground_truth(mapped, capsys):
+    from cusfm_ros.core.evaluation import AteOptions, absolute_trajectory_error
+    from cusfm_ros.io.tum import read_tum
+
+    sim, run = mapped
+    page = (run / "report.html").read_text()
+    assert all(f'id="{f}"' in page for f in FIGURES) and 'id="ate"' not in page
+    assert 'id="extrinsics"' not in page  # nothing was refined: no empty chart
+    assert main(["report", str(run), "--ground-truth", str(sim / "ground_truth.tum")]) == 0
+    assert capsys.readouterr().out.strip() == str(run / "report.html")
+    page = (run / "report.html").read_text()
+    assert 'id="ate"' in page and page.count("<figure") == len(FIGURES) + 1
+    ate = absolute_trajectory_error(read_tum(sim / "ground_truth.tum"),
+                                    read_tum(run / "poses.tum"), AteOptions(align="se3"))
+    assert f"RMSE {ate.rmse:.3f} m" in page
+    images = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', page)
+    assert len(images) == len(FIGURES) + 1  # self-contained: every figure inlined
+    assert "http://" not in page and "https://" not in page
+
+
+def test_report_needs_a_finished_run(tmp_path, capsys):
+    assert main(["report", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "no report.json" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None,
+                    reason="Chromium (Debian's package) is not installed")
+def test_a_real_browser_loads_every_figure(mapped, tmp_path):
+    _, run = mapped
+    page = run / "report.html"
+    result = subprocess.run(
+        ["chromium", "--headless", "--no-sandbox", "--disable-gpu",
+         "--virtual-time-budget=5000", "--dump-dom", page.as_uri()],
+        capture_output=True, text=True, timeout=120)
+    body = re.search(r'<body data-figures="(\d+)" data-figures-loaded="(\d+)"', result.stdout)
+    assert body is not None, result.stdout[:500] + result.stderr[-500:]
+    assert int(body.group(1)) >= len(FIGURES) and body.group(1) == body.group(2)
+    for figure in FIGURES:
+        assert f'<figure id="{figure}" data-loaded="true"' in result.stdout, figure
+    screenshot = tmp_path / "report.png"
+    subprocess.run(["chromium", "--headless", "--no-sandbox", "--disable-gpu",
+                    "--window-size=1400,2400", f"--screenshot={screenshot}", page.as_uri()],
+                   capture_output=True, timeout=120)
+    import cv2
+
+    image = cv2.imread(str(screenshot))
+    assert image is not None and image.shape[:2] == (2400, 1400)
+    assert np.std(image) > 10  # a drawn page, not a blank one
