@@ -22,14 +22,16 @@ from cusfm_ros.sim.generator import SimulationOptions, Simulator
 logger = logging.getLogger(__name__)
 DRIFT = {"odom_yaw_drift_deg_per_m": 0.3, "odom_scale_error": 0.02}
 
+# small enough for about two minutes on two cores, large enough for loops and refinement
 DATASETS = {
-    "indoor_stereo4": (SimulationOptions(scene="indoor", rig="stereo4", frames=30, loops=1,
-                                         image_width=480, image_height=360, seed=1, **DRIFT),
-                       "indoor.yaml"),
-    "street_stereo": (SimulationOptions(scene="street", rig="stereo", frames=80, loops=1,
+    "indoor_stereo": (SimulationOptions(scene="indoor", rig="stereo", frames=70, loops=1,
+                                        image_width=320, image_height=240, seed=1, **DRIFT),
+                      "indoor.yaml"),
+    "street_stereo": (SimulationOptions(scene="street", rig="stereo", frames=40, loops=1,
                                         image_width=480, image_height=360, seed=2, **DRIFT),
                       "av.yaml"),
 }
+MAX_KEYPOINTS = 512
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -40,9 +42,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _options(preset: str):
-    # 1024 keypoints keep the demo to a few minutes on two cores
     return resolve_options(preset_path(preset),
-                           {"features.extractor.aliked.max_keypoints": 1024})
+                           {"features.extractor.aliked.max_keypoints": MAX_KEYPOINTS})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
         summary = result["summary"]
         print(f"  {name}: {summary['keyframes']} keyframe images, {summary['pairs']} pairs, "
               f"{summary['points']} points, mean reprojection error "
-              f"{summary['mean_reprojection_error_px']:.2f} px")
+              f"{summary['mean_reprojection_error_px']:.2f} px, {summary['loops'] or 0} loop "
+              "closures")
         print(f"      input odometry {ate['input'].rmse:.3f} m -> refined "
               f"{ate['refined'].rmse:.3f} m ({ate['refined'].n} poses)")
         print(f"      outputs: {run_dir}/poses.tum, sparse/, points.ply, extrinsics.yaml, "
