@@ -54,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
         shown = {k: v for k, v in entry.items() if k not in ("options", "fingerprint")}
         print(f"{stage:<11} {json.dumps(shown)}")
     if "export" in report["stages"]:
-        print(f"outputs: {args.out}/poses.tum, initial_poses.tum, extrinsics.yaml, sparse/, "
-              "points.ply")
+        print(f"outputs: {args.out}/poses.tum, initial_poses.tum, extrinsics.yaml, sparse/ "
+              "(COLMAP 4, with rigs and frames), points.ply, results.mcap, exports/ (nerfstudio "
+              "transforms.json, KITTI and TUM per camera), report.html")
     print(f"report: {args.out}/report.json")
     return 0

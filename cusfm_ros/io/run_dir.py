@@ -15,8 +15,9 @@ No stage spells a path literal; each asks its ``RunDir``. Layout:
     mapping/              poses.tum, extrinsics.yaml, points.npz, summary.json
     map/                  the map store for localization and map update (io/map_store.py)
     stages/<stage>.json   the runner's record of each stage (status, fingerprint, counts)
-    initial_poses.tum, poses.tum, extrinsics.yaml, sparse/, points.ply, results.mcap,
-    report.json
+    initial_poses.tum, poses.tum, extrinsics.yaml, sparse/ (with COLMAP 4 rigs and frames),
+    points.ply, results.mcap, exports/ (nerfstudio, KITTI, TUM per camera), report.json,
+    report.html
 """
 
 from __future__ import annotations
@@ -140,6 +141,11 @@ class RunDir:
     @property
     def results_bag(self) -> Path:
         return self.root / "results.mcap"
+
+    @property
+    def exports(self) -> Path:
+        """transforms.json (nerfstudio), kitti/<camera>.txt (+ _times.txt), tum/<camera>.tum"""
+        return self.root / "exports"
 
     @property
     def report(self) -> Path:

@@ -55,7 +55,31 @@ class ColmapPoint3D:
 
 
 @dataclass
+class ColmapRig:
+    """COLMAP 4's rig: the reference camera's frame is the rig frame; every other camera
+    has ``sensor_from_rig``."""
+
+    rig_id: int
+    ref_camera_id: int
+    sensor_from_rig: dict[int, Rigid3] = field(default_factory=dict)
+
+
+@dataclass
+class ColmapFrame:
+    """COLMAP 4's frame: one capture of a rig (``rig_from_world``) and its images."""
+
+    frame_id: int
+    rig_id: int
+    rig_from_world: Rigid3
+    image_ids: dict[int, int] = field(default_factory=dict)
+    """camera_id -> image_id"""
+
+
+@dataclass
 class ColmapReconstruction:
     cameras: dict[int, ColmapCamera] = field(default_factory=dict)
     images: dict[int, ColmapImage] = field(default_factory=dict)
     points3d: dict[int, ColmapPoint3D] = field(default_factory=dict)
+    rigs: dict[int, ColmapRig] = field(default_factory=dict)
+    """Empty: COLMAP (4) gives every camera a trivial rig and every image its own frame."""
+    frames: dict[int, ColmapFrame] = field(default_factory=dict)

@@ -18,7 +18,8 @@ from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.errors import CusfmError, FormatError, GeometryError
 from cusfm_ros.io.atomic import atomic_directory
 from cusfm_ros.io.colmap.model import (COLMAP_MODEL_NAMES, COLMAP_MODELS, ColmapCamera,
-                                       ColmapImage, ColmapPoint3D, ColmapReconstruction)
+                                       ColmapFrame, ColmapImage, ColmapPoint3D,
+                                       ColmapReconstruction, ColmapRig)
 
 _POINT2D = np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
 _TRACK = np.dtype([("image_id", "<u4"), ("point2d_idx", "<u4")])
@@ -136,6 +137,68 @@ def _fmt(value: float) -> str:
     return repr(float(value))
 
 
+def _pose_text(pose: Rigid3) -> str:
+    return " ".join(_fmt(v) for v in (*pose.quat_wxyz(), *pose.translation))
+
+
+def _write_rigs_text(model: ColmapReconstruction, directory: Path) -> None:
+    """COLMAP 4's rigs.txt and frames.txt (the layout COLMAP and pycolmap 4 write)."""
+    with open(directory / "rigs.txt", "w", encoding="utf-8") as out:
+        out.write("# Rig calib list with one line of data per calib:\n"
+                  "#   RIG_ID, NUM_SENSORS, REF_SENSOR_TYPE, REF_SENSOR_ID, SENSORS[] as "
+                  "(SENSOR_TYPE, SENSOR_ID, HAS_POSE, [QW, QX, QY, QZ, TX, TY, TZ])\n"
+                  f"# Number of rigs: {len(model.rigs)}\n")
+        for rig in sorted(model.rigs.values(), key=lambda r: r.rig_id):
+            sensors = "".join(f" CAMERA {camera_id} 1 {_pose_text(pose)}"
+                              for camera_id, pose in sorted(rig.sensor_from_rig.items()))
+            out.write(f"{rig.rig_id} {1 + len(rig.sensor_from_rig)} CAMERA "
+                      f"{rig.ref_camera_id}{sensors}\n")
+    with open(directory / "frames.txt", "w", encoding="utf-8") as out:
+        out.write("# Frame list with one line of data per frame:\n"
+                  "#   FRAME_ID, RIG_ID, RIG_FROM_WORLD[QW, QX, QY, QZ, TX, TY, TZ], "
+                  "NUM_DATA_IDS, DATA_IDS[] as (SENSOR_TYPE, SENSOR_ID, DATA_ID)\n"
+                  f"# Number of frames: {len(model.frames)}\n")
+        for frame in sorted(model.frames.values(), key=lambda f: f.frame_id):
+            data = "".join(f" CAMERA {c} {i}" for c, i in sorted(frame.image_ids.items()))
+            out.write(f"{frame.frame_id} {frame.rig_id} {_pose_text(frame.rig_from_world)} "
+                      f"{len(frame.image_ids)}{data}\n")
+
+
+def _read_rigs_text(directory: Path) -> tuple[dict[int, ColmapRig], dict[int, ColmapFrame]]:
+    rigs, frames = {}, {}
+    rigs_path, frames_path = directory / "rigs.txt", directory / "frames.txt"
+    if not rigs_path.is_file() or not frames_path.is_file():
+        return rigs, frames
+    for number, line in _data_lines(rigs_path):
+        items = line.split()
+        try:
+            rig = ColmapRig(int(items[0]), int(items[3]))
+            num, rest = int(items[1]), items[4:]
+            for _ in range(num - 1):
+                if rest[0] != "CAMERA" or rest[2] != "1":
+                    raise ValueError("only camera sensors with poses are supported")
+                values = np.array(rest[3:10], np.float64)
+                rig.sensor_from_rig[int(rest[1])] = _pose(values[:4], values[4:], rigs_path,
+                                                          str(number))
+                rest = rest[10:]
+        except (IndexError, ValueError) as exc:
+            raise FormatError(rigs_path, str(number), f"malformed rig ({exc})") from None
+        rigs[rig.rig_id] = rig
+    for number, line in _data_lines(frames_path):
+        items = line.split()
+        try:
+            values = np.array(items[2:9], np.float64)
+            frame = ColmapFrame(int(items[0]), int(items[1]),
+                                _pose(values[:4], values[4:], frames_path, str(number)))
+            rest = items[10:]
+            for k in range(int(items[9])):
+                frame.image_ids[int(rest[3 * k + 1])] = int(rest[3 * k + 2])
+        except (IndexError, ValueError) as exc:
+            raise FormatError(frames_path, str(number), f"malformed frame ({exc})") from None
+        frames[frame.frame_id] = frame
+    return rigs, frames
+
+
 def _write_text(model: ColmapReconstruction, directory: Path) -> None:
     with open(directory / "cameras.txt", "w", encoding="utf-8") as out:
         out.write("# Camera list with one line of data per camera:\n"
@@ -168,6 +231,8 @@ def _write_text(model: ColmapReconstruction, directory: Path) -> None:
             track = " ".join(f"{int(i)} {int(j)}" for i, j in
                              zip(point.image_ids, point.point2d_idxs))
             out.write(f"{point.point3d_id} {xyz} {rgb} {_fmt(point.error)} {track}\n")
+    if model.rigs:
+        _write_rigs_text(model, directory)
 
 
 # --------------------------------------------------------------------------------- binary
@@ -248,7 +313,63 @@ def _read_points_binary(path: Path) -> dict[int, ColmapPoint3D]:
     return points
 
 
+def _pose_binary(pose: Rigid3) -> bytes:
+    return struct.pack("<7d", *pose.quat_wxyz(), *pose.translation)
+
+
+def _write_rigs_binary(model: ColmapReconstruction, directory: Path) -> None:
+    """rigs.bin / frames.bin as COLMAP 4 writes them (sensor type 0 = camera)."""
+    with open(directory / "rigs.bin", "wb") as out:
+        out.write(struct.pack("<Q", len(model.rigs)))
+        for rig in sorted(model.rigs.values(), key=lambda r: r.rig_id):
+            out.write(struct.pack("<IIiI", rig.rig_id, 1 + len(rig.sensor_from_rig), 0,
+                                  rig.ref_camera_id))
+            for camera_id, pose in sorted(rig.sensor_from_rig.items()):
+                out.write(struct.pack("<iIB", 0, camera_id, 1) + _pose_binary(pose))
+    with open(directory / "frames.bin", "wb") as out:
+        out.write(struct.pack("<Q", len(model.frames)))
+        for frame in sorted(model.frames.values(), key=lambda f: f.frame_id):
+            out.write(struct.pack("<II", frame.frame_id, frame.rig_id)
+                      + _pose_binary(frame.rig_from_world)
+                      + struct.pack("<I", len(frame.image_ids)))
+            for camera_id, image_id in sorted(frame.image_ids.items()):
+                out.write(struct.pack("<iIQ", 0, camera_id, image_id))
+
+
+def _read_rigs_binary(directory: Path) -> tuple[dict[int, ColmapRig], dict[int, ColmapFrame]]:
+    rigs, frames = {}, {}
+    rigs_path, frames_path = directory / "rigs.bin", directory / "frames.bin"
+    if not rigs_path.is_file() or not frames_path.is_file():
+        return rigs, frames
+    with open(rigs_path, "rb") as handle:
+        reader = _Reader(handle, rigs_path)
+        for _ in range(reader.read("<Q")[0]):
+            rig_id, num, _, ref = reader.read("<IIiI")
+            rig = ColmapRig(rig_id, ref)
+            for _ in range(num - 1):
+                _, camera_id, has_pose = reader.read("<iIB")
+                if has_pose:
+                    values = np.array(reader.read("<7d"))
+                    rig.sensor_from_rig[camera_id] = _pose(values[:4], values[4:], rigs_path,
+                                                           f"rig {rig_id}")
+            rigs[rig_id] = rig
+    with open(frames_path, "rb") as handle:
+        reader = _Reader(handle, frames_path)
+        for _ in range(reader.read("<Q")[0]):
+            frame_id, rig_id = reader.read("<II")
+            values = np.array(reader.read("<7d"))
+            frame = ColmapFrame(frame_id, rig_id, _pose(values[:4], values[4:], frames_path,
+                                                        f"frame {frame_id}"))
+            for _ in range(reader.read("<I")[0]):
+                _, camera_id, image_id = reader.read("<iIQ")
+                frame.image_ids[camera_id] = image_id
+            frames[frame_id] = frame
+    return rigs, frames
+
+
 def _write_binary(model: ColmapReconstruction, directory: Path) -> None:
+    if model.rigs:
+        _write_rigs_binary(model, directory)
     with open(directory / "cameras.bin", "wb") as out:
         out.write(struct.pack("<Q", len(model.cameras)))
         for cam in sorted(model.cameras.values(), key=lambda c: c.camera_id):
@@ -299,11 +420,13 @@ def read_model(directory: str | os.PathLike, ext: str | None = None) -> ColmapRe
     if ext == "txt":
         model = ColmapReconstruction(_read_cameras_text(files["cameras"]),
                                      _read_images_text(files["images"], lines),
-                                     _read_points_text(files["points3D"], lines))
+                                     _read_points_text(files["points3D"], lines),
+                                     *_read_rigs_text(directory))
     elif ext == "bin":
         model = ColmapReconstruction(_read_cameras_binary(files["cameras"]),
                                      _read_images_binary(files["images"]),
-                                     _read_points_binary(files["points3D"]))
+                                     _read_points_binary(files["points3D"]),
+                                     *_read_rigs_binary(directory))
     else:
         raise CusfmError(f"unknown COLMAP model format {ext!r} (use 'txt' or 'bin')")
     _validate(model, files, lines)

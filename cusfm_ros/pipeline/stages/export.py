@@ -26,9 +26,10 @@ from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CalibrationError, CusfmError
-from cusfm_ros.io.atomic import atomic_write
+from cusfm_ros.io.atomic import atomic_directory, atomic_write
 from cusfm_ros.io.colmap import (ColmapImage, ColmapPoint3D, ColmapReconstruction,
                                  camera_to_colmap, write_model)
+from cusfm_ros.io.colmap.model import ColmapFrame, ColmapRig
 from cusfm_ros.io.colmap.cameras import COLMAP_PIXEL_OFFSET
 from cusfm_ros.io.extrinsics_yaml import Extrinsics, read_extrinsics
 from cusfm_ros.io.feature_store import FeatureStore
@@ -106,6 +107,7 @@ def colmap_model(keyframes: KeyframeSet, world_from_rig: Trajectory, extrinsics:
         model.images[image_id] = ColmapImage(
             image_id, keyframe.image_name, camera_ids[keyframe.camera_name],
             world_from_cam.inverse(), keypoints + COLMAP_PIXEL_OFFSET, ids)
+    _add_rig(model, keyframes, by_sample, extrinsics, camera_ids, image_ids)
     order = np.argsort(points.obs_point, kind="stable")
     starts = np.searchsorted(points.obs_point[order], np.arange(len(points) + 1))
     image_of_obs = np.array([image_ids[n] for n in points.obs_image], np.int64)
@@ -124,13 +126,63 @@ def colmap_model(keyframes: KeyframeSet, world_from_rig: Trajectory, extrinsics:
     return model
 
 
+def _add_rig(model: ColmapReconstruction, keyframes: KeyframeSet, by_sample: dict,
+             extrinsics: Extrinsics, camera_ids: dict, image_ids: dict) -> None:
+    """COLMAP 4's rig (the first camera's frame is the rig frame) and one frame per rig
+    sample, so COLMAP and pycolmap 4 see the images of one capture as one frame."""
+    names = keyframes.rig.names
+    base_from = {n: extrinsics.cameras[n].rig_from_cam for n in names}
+    reference = names[0]
+    model.rigs[1] = ColmapRig(1, camera_ids[reference], {
+        camera_ids[n]: base_from[n].inverse() * base_from[reference] for n in names[1:]})
+    for number, (sample_id, members) in enumerate(sorted(
+            keyframes.samples().items(), key=lambda item: item[1][0].stamp_ns), 1):
+        world_from_ref = Rigid3.from_matrix(by_sample[sample_id]) * base_from[reference]
+        model.frames[number] = ColmapFrame(
+            number, 1, world_from_ref.inverse(),
+            {camera_ids[k.camera_name]: image_ids[k.image_name] for k in members})
+
+
+def write_exports(directory: Path, keyframes: KeyframeSet, world_from_rig: Trajectory,
+                  extrinsics: Extrinsics, image_path, final: Path | None = None) -> dict:
+    """``directory``: nerfstudio ``transforms.json``, KITTI ``kitti/<camera>.txt`` (+
+    ``_times.txt``) and ``tum/<camera>.tum``, each camera's refined world_from_cam.
+    ``final``: where ``directory`` will live (image paths are relative to it)."""
+    from cusfm_ros.io.kitti_poses import write_kitti_poses
+    from cusfm_ros.io.nerfstudio import write_transforms
+    from cusfm_ros.io.tum import write_tum
+
+    by_sample = dict(zip(keyframes.sample_poses()[0], world_from_rig.world_from_body))
+    frames, written = [], {"nerfstudio": True}
+    for camera in keyframes.rig:
+        members = [k for k in keyframes.images_in_time_order()
+                   if k.camera_name == camera.name]
+        if not members:
+            continue
+        rig_from_cam = extrinsics.cameras[camera.name].rig_from_cam.matrix()
+        stamps = np.array([k.stamp_ns for k in members], np.int64)
+        world_from_cam = np.stack([by_sample[k.sample_id] @ rig_from_cam for k in members])
+        write_tum(directory / "tum" / f"{camera.name}.tum", Trajectory(stamps, world_from_cam))
+        write_kitti_poses(directory / "kitti" / f"{camera.name}.txt",
+                          directory / "kitti" / f"{camera.name}_times.txt", stamps,
+                          world_from_cam)
+        frames += [(image_path(k.image_name), camera.camera, m)
+                   for k, m in zip(members, world_from_cam)]
+    try:
+        write_transforms(directory / "transforms.json", frames, final or directory)
+    except CalibrationError as exc:
+        logger.warning("export: no nerfstudio transforms.json (%s)", exc)
+        written["nerfstudio"] = False
+    return written
+
+
 class ExportStage(Stage):
     name = "export"
     sections = {"export": ExportOptions}
     reads = ("export",)
     inputs = ("keyframes_dir", "features", "mapping_dir")
-    outputs = ("initial_poses", "poses", "extrinsics", "points_ply", "results_bag")
-    version = 2
+    outputs = ("initial_poses", "poses", "extrinsics", "points_ply", "results_bag", "exports")
+    version = 3  # 3: sparse/ has COLMAP 4 rigs and frames; exports/
     optional_outputs = ("sparse",)
 
     def run(self, context: StageContext) -> dict:
@@ -152,6 +204,9 @@ class ExportStage(Stage):
                           {n: (c.frame_id, c.rig_from_cam) for n, c in extrinsics.cameras.items()})
         if model is not None:
             write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt")
+        with atomic_directory(run.exports) as tmp:
+            write_exports(tmp, keyframes, read_tum(run.mapping_poses), extrinsics,
+                          run.keyframe_image, run.exports)
         _copy(run.keyframe_initial_poses, run.initial_poses)
         _copy(run.mapping_extrinsics, run.extrinsics)
         _copy(run.mapping_poses, run.poses)  # last: poses.tum means the export is complete

@@ -1,0 +1,133 @@
+"""The exports people move maps on with, read back by the reference tools' own readers where
+they are installed: COLMAP 4 sparse/ with rigs and frames (pycolmap), nerfstudio
+transforms.json (its schema, OpenGL axes), KITTI pose files and TUM per camera (evo)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cusfm_ros.cli.main import main
+from cusfm_ros.core.geometry import Rigid3
+
+OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory, models_ready):
+    from cusfm_ros.sim.generator import SimulationOptions, Simulator
+
+    root = tmp_path_factory.mktemp("exports")
+    sim = Simulator(SimulationOptions(scene="indoor", rig="stereo", frames=20,
+                                      image_width=320, image_height=240)).generate(
+        root / "sim")
+    run = root / "run"
+    assert main(["map", str(sim / "bag"), "--out", str(run), "--max-keypoints", "512",
+                 "--rgb", "--steps", "keyframes", "features", "vocabulary", "loops",
+                 "pose_graph", "pairs", "matching", "mapping", "export"]) == 0
+    return run
+
+
+def _world_from_cam(run):
+    """camera -> (stamps, world_from_cam) from poses.tum, keyframes and extrinsics.yaml."""
+    from cusfm_ros.io.extrinsics_yaml import read_extrinsics
+    from cusfm_ros.io.keyframes_file import read_keyframes
+    from cusfm_ros.io.tum import read_tum
+
+    keyframes = read_keyframes(run / "keyframes" / "keyframes.json")
+    poses = read_tum(run / "poses.tum")
+    by_sample = dict(zip(keyframes.sample_poses()[0], poses.world_from_body))
+    extrinsics = read_extrinsics(run / "extrinsics.yaml")
+    out = {}
+    for camera in keyframes.rig:
+        members = [k for k in keyframes.images_in_time_order() if k.camera_name == camera.name]
+        rig_from_cam = extrinsics.cameras[camera.name].rig_from_cam.matrix()
+        out[camera.name] = (np.array([k.stamp_ns for k in members]),
+                            np.stack([by_sample[k.sample_id] @ rig_from_cam for k in members]),
+                            [k.image_name for k in members])
+    return keyframes, out
+
+
+def test_colmap4_rigs_and_frames_read_by_pycolmap(mapped, tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    from cusfm_ros.io.colmap import read_model, write_model
+
+    run = mapped
+    keyframes, cams = _world_from_cam(run)
+    ours = read_model(run / "sparse")
+    assert len(ours.rigs) == 1 and len(ours.frames) == len(keyframes.samples())
+    for directory, ext in ((run / "sparse", "txt"), (tmp_path / "bin", "bin")):
+        if ext == "bin":
+            write_model(ours, directory, "bin")
+            assert read_model(directory).frames.keys() == ours.frames.keys()
+        reference = pycolmap.Reconstruction(str(directory))
+        assert reference.num_rigs() == 1 and reference.num_frames() == len(ours.frames)
+        rig = reference.rig(1)
+        assert rig.num_sensors() == 2
+        for image_id, image in ours.images.items():
+            theirs = reference.image(image_id)
+            assert theirs.frame_id in ours.frames
+            np.testing.assert_allclose(theirs.cam_from_world().matrix(),
+                                       image.cam_from_world.matrix()[:3], atol=1e-9)
+        for point_id, point in list(ours.points3d.items())[:200]:
+            theirs = reference.point3D(point_id)
+            assert np.array_equal(theirs.color, point.rgb)
+            assert theirs.error == pytest.approx(point.error)
+    # the frame's images are one capture: world_from_cam of each equals ours
+    names = {i.name: i for i in ours.images.values()}
+    for _, (_, world_from_cam, image_names) in cams.items():
+        for name, pose in zip(image_names, world_from_cam):
+            np.testing.assert_allclose(names[name].cam_from_world.inverse().matrix(), pose,
+                                       atol=1e-9)
+
+
+def test_nerfstudio_transforms_follow_its_schema(mapped):
+    from cusfm_ros.io.nerfstudio import read_transforms
+    from cusfm_ros.io.run_dir import RunDir
+
+    import json
+
+    run = mapped
+    _, cams = _world_from_cam(run)
+    data = json.loads((run / "exports" / "transforms.json").read_text())
+    assert set(data) == {"frames"} and len(data["frames"]) == sum(len(v[2]) for v in
+                                                                   cams.values())
+    required = {"file_path", "transform_matrix", "fl_x", "fl_y", "cx", "cy", "w", "h",
+                "camera_model", "k1", "k2", "p1", "p2"}
+    for frame in data["frames"]:
+        assert required <= set(frame) and frame["camera_model"] == "OPENCV"
+        matrix = np.array(frame["transform_matrix"])
+        assert matrix.shape == (4, 4) and np.array_equal(matrix[3], [0, 0, 0, 1])
+        assert isinstance(frame["w"], int) and isinstance(frame["h"], int)
+    by_path = {path.resolve(): (fields, pose)
+               for path, fields, pose in read_transforms(run / "exports" / "transforms.json")}
+    for _, (_, world_from_cam, image_names) in cams.items():
+        for name, pose in zip(image_names, world_from_cam):
+            path = RunDir(run).keyframe_image(name).resolve()
+            assert path.is_file() and path in by_path
+            _, exported = by_path[path]
+            np.testing.assert_allclose(exported, pose, atol=1e-12)
+    # OpenGL axes: the camera looks along -z of transform_matrix, i.e. OpenCV's +z
+    first = data["frames"][0]
+    opencv = np.array(first["transform_matrix"]) @ OPENGL
+    np.testing.assert_allclose(-np.array(first["transform_matrix"])[:3, 2], opencv[:3, 2])
+
+
+def test_kitti_and_tum_per_camera_read_by_evo(mapped):
+    file_interface = pytest.importorskip("evo.tools.file_interface")
+    run = mapped
+    _, cams = _world_from_cam(run)
+    for camera, (stamps, world_from_cam, _) in cams.items():
+        kitti = file_interface.read_kitti_poses_file(str(run / "exports" / "kitti" /
+                                                         f"{camera}.txt"))
+        relative = np.linalg.inv(world_from_cam[0]) @ world_from_cam
+        np.testing.assert_allclose(np.array(kitti.poses_se3), relative, atol=1e-9)
+        np.testing.assert_allclose(kitti.poses_se3[0], np.eye(4), atol=1e-12)
+        times = np.loadtxt(run / "exports" / "kitti" / f"{camera}_times.txt")
+        np.testing.assert_allclose(times, (stamps - stamps[0]) / 1e9, atol=1e-9)
+        tum = file_interface.read_tum_trajectory_file(str(run / "exports" / "tum" /
+                                                          f"{camera}.tum"))
+        np.testing.assert_allclose(tum.positions_xyz, world_from_cam[:, :3, 3], atol=1e-6)
+        first = Rigid3.from_matrix(np.array(tum.poses_se3[0]))
+        assert (Rigid3.from_matrix(world_from_cam[0]).inverse() * first
+                ).rotation_angle_deg() < 1e-4
