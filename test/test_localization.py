@@ -290,6 +290,8 @@ def test_every_view_of_a_second_drive_localizes_without_a_prior(mapped, tmp_path
     assert within.mean() >= 0.95, errors
     assert np.median(errors[:, 0]) < 0.05
     assert _digest_tree(run / "map") == before
+    page = (out / "report.html").read_text()  # the run's page: where it localized, how fast
+    assert 'id="trajectory-top"' in page and 'id="latency"' in page
 
 
 def _query_image(sim, tmp_path, index=17):
@@ -455,8 +457,10 @@ def test_map_update_fixed_keeps_the_map_and_adjust_improves_both_sessions(mapped
     assert np.array_equal(merged.sample_world_from_rig[index], old.sample_world_from_rig)
     assert len(merged) > len(old) and merged.num_keyframes == 2 * old.num_keyframes
     assert len(read_tum(fixed / "poses.tum")) == 120
-    for path in ("extrinsics.yaml", "points.ply", "sparse/images.txt", "results.mcap"):
+    for path in ("extrinsics.yaml", "points.ply", "sparse/images.txt", "results.mcap",
+                 "report.html"):
         assert (fixed / path).is_file(), path
+    assert 'id="cloud"' in (fixed / "report.html").read_text()
     assert len(_results_path(fixed)) == 120 and len(_results_path(run)) == 60
     assert main(["map-update", str(run), str(sim / "bag_session2"), "--out", str(adjust),
                  "--mode", "adjust", "--min-translation-m", "0.3"]) == 0

@@ -16,6 +16,7 @@ from cusfm_ros.io.atomic import atomic_directory
 from cusfm_ros.io.bags.reader import BagReader
 from cusfm_ros.io.bags.rig_samples import iter_rig_samples, scan_cameras
 from cusfm_ros.io.tum import write_tum
+from cusfm_ros.report.page import write_page
 from cusfm_ros.pipeline.localization import latency_stats
 from cusfm_ros.pipeline.progress import Progress
 
@@ -71,6 +72,7 @@ def localize_bag(localizer: Localizer, bag_path: str | os.PathLike, out_dir: str
             write_tum(tmp / "localized.tum", Trajectory(np.asarray(stamps, np.int64),
                                                         np.stack(poses)))
         (tmp / "report.json").write_text(json.dumps(report, indent=1) + "\n")
+    write_page(out_dir)
     logger.info("localize: %d of %d rig samples localized (median %.3f s per query) -> %s",
                 len(stamps), len(queries), summary["latency"].get("median_s", float("nan")),
                 out_dir)

@@ -46,6 +46,7 @@ from cusfm_ros.io.map_store import (map_dir_of, map_poses_text, read_map_store,
 from cusfm_ros.io.pairs_file import read_pairs
 from cusfm_ros.io.ply import write_ply
 from cusfm_ros.io.results_bag import write_results_bag
+from cusfm_ros.report.page import write_page
 from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.io.tum import format_tum, read_tum
 from cusfm_ros.pipeline.components import make_matcher
@@ -278,6 +279,7 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
     (out / "report.json").write_text(json.dumps(
         {"format": "cusfm_map_update_report/1", "map": str(map_dir), "bag": str(bag),
          **counts}, indent=1) + "\n")
+    write_page(out)
     logger.info("map update (%s): %d new samples (%d localized), %d cross pairs, %d points "
                 "-> %s in %.1f s", update.mode, len(new_ids), len(localized), len(cross),
                 len(points), out, time.perf_counter() - started)

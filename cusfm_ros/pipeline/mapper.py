@@ -7,15 +7,14 @@ runner's (``pipeline/runner.py``). Stages: see ``pipeline/registry.py``.
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 from cusfm_ros.pipeline.options import MapperOptions
 from cusfm_ros.pipeline.registry import STAGE_NAMES, STAGES
 from cusfm_ros.pipeline.runner import StageRunner
+from cusfm_ros.report.page import write_page
 
-__all__ = ["STAGE_NAMES", "Mapper", "MapperOptions"]
-logger = logging.getLogger(__name__)
+__all__ = ["STAGE_NAMES", "Mapper", "MapperOptions", "write_page"]
 
 
 class Mapper:
@@ -30,16 +29,3 @@ class Mapper:
         if "export" in report["stages"]:
             write_page(run_dir)
         return report
-
-
-def write_page(run_dir: str | Path, ground_truth: str | Path | None = None) -> Path | None:
-    """report.html; a failure to draw is a warning, never a failed map."""
-    from cusfm_ros.report.page import write_report_page
-
-    try:
-        path = write_report_page(run_dir, ground_truth)
-    except Exception as exc:  # noqa: BLE001 - the map is done; the page is a view of it
-        logger.warning("report.html not written (%s: %s)", type(exc).__name__, exc)
-        return None
-    logger.info("report: %s", path)
-    return path

@@ -21,7 +21,9 @@ import numpy as np
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.report.run_data import RunData
 
-COLOURS = {"initial": "#d62728", "refined": "#1f77b4", "truth": "#2ca02c", "loop": "#ff7f0e"}
+COLOURS = {"initial": "#d62728", "refined": "#1f77b4", "truth": "#2ca02c", "loop": "#ff7f0e",
+           "localized": "#9467bd"}
+ATE_KEYS = {"initial": "input", "refined": "refined", "localized": "localized"}
 _SCRIPT = """
 window.addEventListener('load', function () {
   var loaded = 0;
@@ -56,17 +58,19 @@ def _trajectories(data: RunData, axes: tuple[int, int], title: str):
     aligned = {}
     if data.truth is not None:
         aligned["truth"] = data.truth.world_from_body[:, :3, 3]
-    for label, trajectory in (("initial", data.initial), ("refined", data.refined)):
+    for label, trajectory in (("initial", data.initial), ("refined", data.refined),
+                              ("localized", data.localized)):
         if trajectory is None:
             continue
-        key = "input" if label == "initial" else "refined"
+        key = ATE_KEYS[label]
         poses = trajectory.world_from_body
         if key in data.ate:  # drawn as the ATE compares them: aligned to the ground truth
             poses = data.ate[key].alignment.transform_poses(poses)
         aligned[label] = poses[:, :3, 3]
     for label, xyz in aligned.items():
+        style = {"ls": "none", "marker": "."} if label == "localized" else {}
         ax.plot(xyz[:, axes[0]], xyz[:, axes[1]], color=COLOURS[label], label=label,
-                lw=1.2 if label != "truth" else 2.0, alpha=0.9)
+                lw=1.2 if label != "truth" else 2.0, alpha=0.9, **style)
     if axes == (0, 1) and data.loops_xy and "refined" in aligned:
         transform = data.ate["refined"].alignment if "refined" in data.ate else None
         for index, (a, b) in enumerate(data.loops_xy):
@@ -85,7 +89,7 @@ def _trajectories(data: RunData, axes: tuple[int, int], title: str):
 
 def _ate_over_time(data: RunData):
     figure, ax = _figure(6.0, 3.0)
-    for key, label in (("input", "initial"), ("refined", "refined")):
+    for label, key in ATE_KEYS.items():
         result = data.ate.get(key)
         if result is not None:
             ax.plot(np.arange(len(result.errors_m)), result.errors_m, color=COLOURS[label],
@@ -152,7 +156,7 @@ def _extrinsics(data: RunData):
 def figures(data: RunData) -> list[tuple[str, str, object]]:
     """(id, caption, matplotlib Figure) for every figure the run's data allows."""
     out = []
-    if data.initial is not None or data.refined is not None:
+    if any(t is not None for t in (data.initial, data.refined, data.localized)):
         out.append(("trajectory-top", "Trajectory, top view", _trajectories(
             data, (0, 1), "trajectory, top view (x-y)")))
         out.append(("trajectory-side", "Trajectory, side view", _trajectories(
@@ -161,6 +165,11 @@ def figures(data: RunData) -> list[tuple[str, str, object]]:
         out.append(("ate", "ATE over time", _ate_over_time(data)))
     if data.report.get("stages"):
         out.append(("stage-times", "Time per stage", _stage_times(data)))
+    if data.latency_s is not None and len(data.latency_s):
+        median_ms = float(np.median(data.latency_s)) * 1e3
+        out.append(("latency", "Localization latency", _histogram(
+            data.latency_s * 1e3, f"latency per query (median {median_ms:.0f} ms)",
+            "milliseconds", 30)))
     if data.reprojection_px is not None and len(data.reprojection_px):
         out.append(("reprojection", "Reprojection error", _histogram(
             data.reprojection_px, "reprojection error per observation", "pixels",
@@ -184,7 +193,8 @@ def _table(rows: list[tuple[str, str]]) -> str:
 
 
 def render(data: RunData) -> str:
-    summary = data.report.get("summary", {})
+    summary = data.report.get("summary") or {k: v for k, v in data.report.items()
+                                             if k not in ("queries", "format")}
     rows = [(key.replace("_", " "), f"{value:.3f}" if isinstance(value, float) else str(value))
             for key, value in summary.items()
             if value is not None and not isinstance(value, dict)]
@@ -226,4 +236,19 @@ def write_report_page(run_dir: str | Path, ground_truth: str | Path | None = Non
     page = render(read_run_data(run_dir, ground_truth))
     with atomic_write(path) as handle:
         handle.write(page)
+    return path
+
+
+def write_page(run_dir: str | Path, ground_truth: str | Path | None = None) -> Path | None:
+    """``write_report_page`` for the end of a run: a failure to draw is a warning, never a
+    failed map."""
+    import logging
+
+    try:
+        path = write_report_page(run_dir, ground_truth)
+    except Exception as exc:  # noqa: BLE001 - the run is done; the page is a view of it
+        logging.getLogger(__name__).warning("report.html not written (%s: %s)",
+                                            type(exc).__name__, exc)
+        return None
+    logging.getLogger(__name__).info("report: %s", path)
     return path

@@ -32,6 +32,9 @@ class RunData:
     initial: Trajectory | None = None
     refined: Trajectory | None = None
     truth: Trajectory | None = None
+    localized: Trajectory | None = None
+    """``cusfm localize --bag``'s map_from_base_link of the samples that localized."""
+    latency_s: np.ndarray | None = None
     ate: dict[str, AteResult] = field(default_factory=dict)
     """"input" / "refined" against the ground truth (SE(3)-aligned), when given."""
     loops_xy: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
@@ -65,9 +68,14 @@ def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None) -
     data.report = _optional("report.json", lambda: json.loads(run.report.read_text())) or {}
     data.initial = _optional("initial poses", lambda: read_tum(run.root / "initial_poses.tum"))
     data.refined = _optional("refined poses", lambda: read_tum(run.root / "poses.tum"))
+    data.localized = _optional("localized poses", lambda: read_tum(run.root / "localized.tum"))
+    queries = data.report.get("queries")
+    if isinstance(queries, list) and queries:
+        data.latency_s = np.array([float(q.get("seconds") or 0.0) for q in queries])
     if ground_truth is not None:
         data.truth = read_tum(ground_truth)
-        for label, trajectory in (("input", data.initial), ("refined", data.refined)):
+        for label, trajectory in (("input", data.initial), ("refined", data.refined),
+                                  ("localized", data.localized)):
             if trajectory is not None:
                 data.ate[label] = absolute_trajectory_error(data.truth, trajectory,
                                                             AteOptions(align="se3"))
@@ -103,5 +111,5 @@ def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None) -
                                                   - camera.rig_from_cam.translation) * 1e3),
                 delta.rotation_angle_deg()))
     mapping = data.report.get("stages", {}).get("mapping", {})
-    data.suspicious = list(mapping.get("suspicious") or [])
+    data.suspicious = list(mapping.get("suspicious") or data.report.get("suspicious") or [])
     return data
