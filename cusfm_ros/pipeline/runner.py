@@ -9,7 +9,8 @@ otherwise. Before a rerun with a changed fingerprint (or ``overwrite``) its outp
 removed; a killed run with an unchanged fingerprint is redone keeping the stores' complete
 entries. ``RUN_DIR/stages/<stage>.json`` records each stage's status, fingerprint, own
 options, input and output digests, counts and seconds; ``report.json`` is assembled from
-those records.
+those records. A run holds ``RUN_DIR/stages/lock`` (``io/run_lock.py``): a second process on
+the same run directory stops at once with one line naming the holder.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.digest import DigestCache
 from cusfm_ros.io.run_dir import RunDir
+from cusfm_ros.io.run_lock import run_dir_lock
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
 
@@ -107,16 +109,18 @@ class StageRunner:
         run = RunDir(run_dir)
         steps = self.check_steps(steps)
         run.root.mkdir(parents=True, exist_ok=True)
-        digests = DigestCache(run.stages_dir / "digests.json", run.root)
-        started = time.perf_counter()
-        entries: dict[str, dict] = {}
-        try:
-            for index, stage in enumerate(s for s in self.stages if s.name in steps):
-                logger.info("=== stage %s (%d/%d) ===", stage.name, index + 1, len(steps))
-                entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite)
-        finally:
-            digests.save()
-        return self._report(run, bag, entries, time.perf_counter() - started)
+        with run_dir_lock(run.stages_dir / "lock"):  # one process per run directory
+            digests = DigestCache(run.stages_dir / "digests.json", run.root)
+            started = time.perf_counter()
+            entries: dict[str, dict] = {}
+            try:
+                for index, stage in enumerate(s for s in self.stages if s.name in steps):
+                    logger.info("=== stage %s (%d/%d) ===", stage.name, index + 1,
+                                len(steps))
+                    entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite)
+            finally:
+                digests.save()
+            return self._report(run, bag, entries, time.perf_counter() - started)
 
     # ----------------------------------------------------------------------------- a stage
     def _run_stage(self, stage: Stage, run: RunDir, bag, digests: DigestCache,

@@ -1,0 +1,55 @@
+"""One process per run directory: a second `cusfm map` into a run directory in use stops at
+once with one line naming the holder, and a holder killed outright (kill -9) leaves no stale
+lock behind."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from cusfm_ros.cli.main import main
+from cusfm_ros.io.run_lock import RunDirInUseError, run_dir_lock
+
+HOLD = """
+import sys, time
+from cusfm_ros.io.run_lock import run_dir_lock
+with run_dir_lock(sys.argv[1]):
+    print("held", flush=True)
+    time.sleep(60)
+"""
+
+
+def _hold(lock):
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(lock)], stdout=subprocess.PIPE,
+                              text=True)
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_second_process_on_a_run_directory_stops_with_one_line(tmp_path, capsys):
+    run = tmp_path / "run"
+    holder = _hold(run / "stages" / "lock")
+    try:
+        assert main(["map", str(tmp_path / "bag"), "--out", str(run)]) == 1
+        err = capsys.readouterr().err
+        assert f"the run directory is in use by another cusfm process (pid {holder.pid}" in err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+        with pytest.raises(RunDirInUseError):
+            with run_dir_lock(run / "stages" / "lock"):
+                pass
+    finally:
+        holder.send_signal(signal.SIGKILL)  # the kernel releases the lock with the process
+        holder.wait(timeout=10)
+    deadline = time.monotonic() + 5
+    while True:
+        try:
+            with run_dir_lock(run / "stages" / "lock"):
+                break
+        except RunDirInUseError:
+            assert time.monotonic() < deadline, "the lock outlived its holder"
+            time.sleep(0.05)
+    assert list((run / "stages").iterdir()) == [run / "stages" / "lock"]  # nothing else
