@@ -53,3 +53,23 @@ def test_second_process_on_a_run_directory_stops_with_one_line(tmp_path, capsys)
             assert time.monotonic() < deadline, "the lock outlived its holder"
             time.sleep(0.05)
     assert list((run / "stages").iterdir()) == [run / "stages" / "lock"]  # nothing else
+
+
+def test_out_that_holds_someone_elses_files_is_refused_untouched(tmp_path, capsys):
+    out = tmp_path / "mine"
+    (out / "keyframes").mkdir(parents=True)
+    (out / "keyframes" / "important.txt").write_text("keep me")
+    assert main(["map", str(tmp_path / "bag"), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "is not empty and is not a cusfm run directory (it holds keyframes)" in err
+    assert len(err.strip().splitlines()) == 1
+    assert (out / "keyframes" / "important.txt").read_text() == "keep me"
+    assert sorted(p.name for p in out.iterdir()) == ["keyframes"]  # nothing added
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert main(["map", str(tmp_path / "bag"), "--out", str(afile)]) == 1
+    assert "is a file; --out needs a directory" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["map", str(tmp_path / "bag"), "--out", str(empty)]) == 1
+    assert "no such bag" in capsys.readouterr().err  # an empty folder is fine

@@ -10,7 +10,9 @@ removed; a killed run with an unchanged fingerprint is redone keeping the stores
 entries. ``RUN_DIR/stages/<stage>.json`` records each stage's status, fingerprint, own
 options, input and output digests, counts and seconds; ``report.json`` is assembled from
 those records. A run holds ``RUN_DIR/stages/lock`` (``io/run_lock.py``): a second process on
-the same run directory stops at once with one line naming the holder.
+the same run directory stops at once with one line naming the holder. A RUN_DIR that exists,
+is not empty and is not a cusfm run directory (no ``stages/``, no ``report.json``) is
+refused: reruns remove stage outputs, so nothing of the user's may live there.
 """
 
 from __future__ import annotations
@@ -80,6 +82,22 @@ def _versions() -> dict[str, str]:
     return out
 
 
+def _check_run_dir(run: RunDir) -> None:
+    """``--out`` must be new, empty or a cusfm run directory: a rerun removes the outputs of
+    the stages it redoes, so a folder of someone else's files is refused, never emptied."""
+    if run.root.exists() and not run.root.is_dir():
+        raise CusfmError(f"{run.root} is a file; --out needs a directory (new, empty or an "
+                         "earlier cusfm run)")
+    if not run.root.is_dir() or run.stages_dir.is_dir() or run.report.is_file():
+        return
+    entries = sorted(p.name for p in run.root.iterdir())
+    if entries:
+        shown = ", ".join(entries[:5]) + (", ..." if len(entries) > 5 else "")
+        raise CusfmError(f"{run.root} is not empty and is not a cusfm run directory (it holds "
+                         f"{shown}); choose a new or empty --out: cusfm never removes files it "
+                         "did not write")
+
+
 class StageRunner:
     """Runs the registered stages named in ``steps`` on one run directory."""
 
@@ -108,6 +126,7 @@ class StageRunner:
               steps: list[str] | None = None, overwrite: bool = False) -> dict:
         run = RunDir(run_dir)
         steps = self.check_steps(steps)
+        _check_run_dir(run)
         run.root.mkdir(parents=True, exist_ok=True)
         with run_dir_lock(run.stages_dir / "lock"):  # one process per run directory
             digests = DigestCache(run.stages_dir / "digests.json", run.root)
