@@ -73,3 +73,33 @@ def test_out_that_holds_someone_elses_files_is_refused_untouched(tmp_path, capsy
     empty.mkdir()
     assert main(["map", str(tmp_path / "bag"), "--out", str(empty)]) == 1
     assert "no such bag" in capsys.readouterr().err  # an empty folder is fine
+
+
+def test_ctrl_c_exits_130_with_one_line_and_a_resumable_run(tmp_path, models_ready):
+    import json
+
+    from cusfm_ros.sim.generator import SimulationOptions, Simulator
+
+    sim = Simulator(SimulationOptions(scene="indoor", rig="stereo", frames=30,
+                                      image_width=320, image_height=240)).generate(
+        tmp_path / "sim")
+    run = tmp_path / "run"
+    process = subprocess.Popen([sys.executable, "-m", "cusfm_ros.cli.main", "map",
+                                str(sim / "bag"), "--out", str(run), "--max-keypoints", "256"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (run / "stages" / "features.json").is_file() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    process.send_signal(signal.SIGINT)
+    err = process.communicate(timeout=60)[1]
+    assert process.returncode == 130, err
+    last = [line for line in err.splitlines() if "interrupted" in line]
+    assert last == ["cusfm map: interrupted; nothing half-written was left, rerun the same "
+                    "command to resume"] and "Traceback" not in err
+    assert not list(run.rglob("*.tmp")) and not (run / "poses.tum").exists()
+    records = {p.stem: json.loads(p.read_text())["status"]
+               for p in (run / "stages").glob("*.json") if p.stem != "digests"}
+    assert records.get("keyframes") == "complete" and "running" in records.values()
+    assert main(["map", str(sim / "bag"), "--out", str(run), "--max-keypoints", "256",
+                 "--steps", "keyframes", "features"]) == 0  # resumes

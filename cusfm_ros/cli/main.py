@@ -53,6 +53,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CusfmError as exc:
         print(f"cusfm {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # Ctrl-C: every atomic write in progress was dropped
+        print(f"cusfm {args.command}: interrupted; nothing half-written was left, rerun the "
+              "same command to resume", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
