@@ -83,7 +83,8 @@ def test_cameras_with_small_offsets_are_grouped(tmp_path):
 
 def test_resume_and_overwrite(tmp_path):
     """Through the runner: same bag and options -> reused; --overwrite or other options ->
-    redone; a copied bag keeps its identity, another bag does not."""
+    redone; a copied bag keeps its identity; another bag is refused unless --overwrite."""
+    from cusfm_ros.errors import CusfmError
     import shutil
 
     from cusfm_ros.pipeline.mapper import Mapper
@@ -106,7 +107,11 @@ def test_resume_and_overwrite(tmp_path):
     shutil.copytree(tmp_path / "bag", tmp_path / "copy")
     assert reused("copy")
     write_bag(tmp_path / "longer", frames=12)
-    assert not reused("longer")
+    with pytest.raises(CusfmError, match=r"holds the run of another bag \(.*/bag\); map "):
+        reused("longer")
+    assert reused()  # the refusal touched nothing
+    assert not reused("longer", overwrite=True)
+    assert reused("longer")  # now it is that bag's run
 
 
 def _fails(tmp_path, capsys, args, message):

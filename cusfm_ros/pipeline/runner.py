@@ -12,7 +12,9 @@ options, input and output digests, counts and seconds; ``report.json`` is assemb
 those records. A run holds ``RUN_DIR/stages/lock`` (``io/run_lock.py``): a second process on
 the same run directory stops at once with one line naming the holder. A RUN_DIR that exists,
 is not empty and is not a cusfm run directory (no ``stages/``, no ``report.json``) is
-refused: reruns remove stage outputs, so nothing of the user's may live there.
+refused: reruns remove stage outputs, so nothing of the user's may live there. A run directory
+belongs to the bag it was made from (``stages/bag.json``, the bag's content identity): another
+bag is refused unless ``overwrite``.
 """
 
 from __future__ import annotations
@@ -98,6 +100,24 @@ def _check_run_dir(run: RunDir) -> None:
                          "did not write")
 
 
+def _bind_bag(run: RunDir, bag: Path, overwrite: bool) -> None:
+    """A run directory belongs to one bag (by content, ``io/bags/identity.py``: a copy or a
+    move of it is the same bag). Another bag is refused unless ``overwrite``."""
+    from cusfm_ros.io.bags.identity import bag_identity
+
+    path = run.stages_dir / "bag.json"
+    identity = bag_identity(bag)
+    known = _read_record(path)
+    if known is not None and known.get("identity") == identity:
+        return
+    if known is not None and not overwrite:
+        raise CusfmError(f"{run.root} holds the run of another bag ({known.get('path')}); map "
+                         f"{bag} into a new --out, or pass --overwrite to redo the stages for "
+                         "it")
+    with atomic_write(path) as handle:
+        json.dump({"identity": identity, "path": str(bag.resolve())}, handle, indent=1)
+
+
 class StageRunner:
     """Runs the registered stages named in ``steps`` on one run directory."""
 
@@ -129,6 +149,8 @@ class StageRunner:
         _check_run_dir(run)
         run.root.mkdir(parents=True, exist_ok=True)
         with run_dir_lock(run.stages_dir / "lock"):  # one process per run directory
+            if bag is not None:
+                _bind_bag(run, Path(bag), overwrite)
             digests = DigestCache(run.stages_dir / "digests.json", run.root)
             started = time.perf_counter()
             entries: dict[str, dict] = {}
