@@ -13,7 +13,7 @@ those records. A run holds ``RUN_DIR/stages/lock`` (``io/run_lock.py``): a secon
 the same run directory stops at once with one line naming the holder. A RUN_DIR that exists,
 is not empty and is not a cusfm run directory (no ``stages/``, no ``report.json``) is
 refused: reruns remove stage outputs, so nothing of the user's may live there. A run directory
-belongs to the bag it was made from (``stages/bag.json``, the bag's content identity): another
+belongs to the bag it was made from (``stages/bag.identity``, the bag's content identity): another
 bag is refused unless ``overwrite``.
 """
 
@@ -105,7 +105,7 @@ def _bind_bag(run: RunDir, bag: Path, overwrite: bool) -> None:
     move of it is the same bag). Another bag is refused unless ``overwrite``."""
     from cusfm_ros.io.bags.identity import bag_identity
 
-    path = run.stages_dir / "bag.json"
+    path = run.stages_dir / "bag.identity"  # JSON; not *.json, which are the stage records
     identity = bag_identity(bag)
     known = _read_record(path)
     if known is not None and known.get("identity") == identity:
