@@ -17,7 +17,6 @@ SIGINT and SIGTERM end the node cleanly (exit 0).
 
 from __future__ import annotations
 
-import signal
 import sys
 from collections.abc import Sequence
 
@@ -41,9 +40,8 @@ def main(args: Sequence[str] | None = None) -> int:
 
     import numpy as np
     from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-    from rclpy.exceptions import ParameterUninitializedException
     from rclpy.qos import qos_profile_sensor_data
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
@@ -52,26 +50,24 @@ def main(args: Sequence[str] | None = None) -> int:
     geometry = import_ros("geometry_msgs.msg")
     sensor = import_ros("sensor_msgs.msg")
     nav = import_ros("nav_msgs.msg")
-    from rcl_interfaces.msg import ParameterDescriptor
 
     from cusfm_ros.io.ros_conversions import POSE_WITH_COVARIANCE_STAMPED
     from cusfm_ros.pipeline.localization import load_localizer
     from cusfm_ros.core.geometry import Rigid3
     from cusfm_ros.ros.localize_service import LocalizeService
+    from cusfm_ros.ros import rclpy_tools as tools
     from cusfm_ros.ros.map_to_odom import OdometryBuffer, map_from_odom
+    from cusfm_ros.ros.parameters import localizer_specs
 
     class LocalizerNode(Node):
         def __init__(self) -> None:
             super().__init__("localizer")
-            read_only = ParameterDescriptor(read_only=True)
-            map_dir = self.declare_parameter("map_dir", "", read_only).value
-            self.map_frame = self.declare_parameter("map_frame", "map", read_only).value
-            device = self.declare_parameter("device", "auto", read_only).value
-            model_dir = self.declare_parameter("model_dir", "", read_only).value
-            topics = self._string_array("image_topics")
-            cameras = self._string_array("camera_names")
-            odom_topic = self.declare_parameter("odom_topic", "", read_only).value
-            self.odom_frame = self.declare_parameter("odom_frame", "", read_only).value
+            values = tools.declare(self, localizer_specs())
+            map_dir, self.map_frame = values["map_dir"], values["map_frame"]
+            device, model_dir = values["device"], values["model_dir"]
+            topics = values["image_topics"] or []
+            cameras = values["camera_names"] or []
+            odom_topic, self.odom_frame = values["odom_topic"], values["odom_frame"]
             if not map_dir:
                 raise CusfmError("parameter map_dir is required (a run directory of `cusfm map`"
                                  " or its map/): -p map_dir:=/data/run1")
@@ -93,17 +89,6 @@ def main(args: Sequence[str] | None = None) -> int:
             self._stream(topics, cameras, odom_topic)
             self.get_logger().info(f"serving ~/localize on a map of {info.num_keyframes} "
                                    f"keyframes and {info.num_points} points ({map_dir})")
-
-        def _string_array(self, name):
-            from rclpy.parameter import Parameter
-
-            descriptor = ParameterDescriptor(read_only=True,
-                                             type=Parameter.Type.STRING_ARRAY.value)
-            self.declare_parameter(name, Parameter.Type.STRING_ARRAY, descriptor)
-            try:
-                return list(self.get_parameter(name).value or [])
-            except ParameterUninitializedException:
-                return []
 
         def _stream(self, topics, cameras, odom_topic) -> None:
             """Subscriptions for continuous localization (none without image_topics)."""
@@ -204,20 +189,14 @@ def main(args: Sequence[str] | None = None) -> int:
                 self.get_logger().warning(text)
             return response
 
-    rclpy.init(args=args)
-    # SIGTERM (what launch and systemd send) ends the node like SIGINT does: the executor
-    # spins in short slices so that Python's handler runs between them
-    stop = []
-    signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
+    shutdown = tools.Shutdown()  # SIGTERM (launch, systemd) ends it as SIGINT does
     node = None
     try:
+        tools.init(args)
         node = LocalizerNode()
         executor = MultiThreadedExecutor()
         executor.add_node(node)
-        while rclpy.ok() and not stop:
-            executor.spin_once(timeout_sec=0.25)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        shutdown.spin(executor, slice_s=0.25)
     except CusfmError as exc:
         print(f"localizer: error: {exc}", file=sys.stderr)
         return 1

@@ -24,7 +24,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from cusfm_ros.errors import ConfigError, CusfmError
+from cusfm_ros.errors import CusfmError
 from cusfm_ros.ros.runtime import import_ros
 
 
@@ -145,9 +145,6 @@ def main(args: Sequence[str] | None = None, kind: str = "map") -> int:
                   "same command to resume", file=sys.stderr)
         elif node.job.running:
             node.job.cancel()
-    except ConfigError as exc:
-        print(f"{program}: error: {exc}", file=sys.stderr)
-        status = 1
     except CusfmError as exc:
         print(f"{program}: error: {exc}", file=sys.stderr)
         status = 1

@@ -134,6 +134,23 @@ class MapperRequest:
     overwrite: bool
 
 
+def localizer_specs() -> list[ParameterSpec]:
+    return [
+        ParameterSpec("map_dir", "string", "run directory of `cusfm map` or its map/ "
+                      "(required)", ""),
+        ParameterSpec("map_frame", "string", "frame of the map and of every pose", "map"),
+        ParameterSpec("device", "string", "auto | cpu | cuda", "auto"),
+        ParameterSpec("model_dir", "string", "ONNX model folder (empty: the default)", ""),
+        ParameterSpec("image_topics", "string_array", "sensor_msgs/Image topics to localize "
+                      "continuously (unset: none)"),
+        ParameterSpec("camera_names", "string_array", "the map camera of each image topic"),
+        ParameterSpec("odom_topic", "string", "nav_msgs/Odometry for map -> odom on /tf "
+                      "(empty: none)", ""),
+        ParameterSpec("odom_frame", "string", "child frame of map -> odom (empty: the "
+                      "odometry's frame_id)", ""),
+    ]
+
+
 def calibration_specs() -> list[ParameterSpec]:
     """The extrinsic_calibration node's: the mapper's less ``steps`` (it runs up to export)
     and less the switches calibration sets itself."""

@@ -216,9 +216,8 @@ def _write_text(model: ColmapReconstruction, directory: Path) -> None:
                   f"# Number of images: {len(model.images)}, mean observations per image: "
                   f"{num_obs / max(len(model.images), 1)}\n")
         for image in sorted(model.images.values(), key=lambda i: i.image_id):
-            pose = image.cam_from_world
-            values = " ".join(_fmt(v) for v in (*pose.quat_wxyz(), *pose.translation))
-            out.write(f"{image.image_id} {values} {image.camera_id} {image.name}\n")
+            out.write(f"{image.image_id} {_pose_text(image.cam_from_world)} "
+                      f"{image.camera_id} {image.name}\n")
             out.write(" ".join(f"{_fmt(x)} {_fmt(y)} {int(i)}" for (x, y), i in
                                zip(image.xys, image.point3d_ids)) + "\n")
     with open(directory / "points3D.txt", "w", encoding="utf-8") as out:
