@@ -14,6 +14,7 @@ seconds. Prints a Markdown table and writes it to OUT/real.md.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import shutil
 import time
@@ -45,11 +46,11 @@ def row(label: str, truth: Trajectory, estimate: Trajectory | None, seconds: flo
     return f"| {label} | {se3} | {sim3:.3f} | {error} | {registered} | {seconds:.1f} |"
 
 
-def ours(bag: Path, run: Path, args) -> float:
+def ours(bag: Path, run: Path, args, extra: tuple[str, ...] = ()) -> float:
     started = time.perf_counter()
     code = cusfm(["map", str(bag), "--out", str(run), "--config", "config/av.yaml",
                   "--features", args.features, "--max-keypoints", str(args.max_keypoints),
-                  "--skip-vocabulary", "--skip-loops"])
+                  "--skip-vocabulary", "--skip-loops", *extra])
     if code != 0:
         raise SystemExit(f"cusfm map failed on {bag}")
     return time.perf_counter() - started
@@ -127,7 +128,6 @@ def main() -> None:
     for text in lines:
         print(text)
     seconds = ours(out / "plain" / "bag", out / "plain" / "run", args)
-    import json
     stages = json.loads((out / "plain" / "run" / "report.json").read_text())["stages"]
     n = f"{len(truth)} of {len(truth)}"
     emit(row("(a) initializer: stereo visual odometry", truth,
@@ -140,6 +140,23 @@ def main() -> None:
              read_tum(out / "drift" / "run" / "initial_poses.tum"), 0.0, n, True))
     emit(row("(c) mapper from that odometry", truth,
              read_tum(out / "drift" / "run" / "poses.tum"), seconds, n, True))
+    ablation = out / "drift" / "run_no_self_calibration"
+    shutil.rmtree(ablation, ignore_errors=True)
+    shutil.copytree(out / "drift" / "run", ablation, ignore=shutil.ignore_patterns("lock"))
+    seconds = ours(out / "drift" / "bag", ablation, args,
+                   ["--steps", "mapping", "--overwrite",
+                    "--set", "refinement.self_calibration.enabled=false",
+                    "--set", "refinement.estimate_odometry_scale=false"])
+    emit(row("(c) same, without self-calibration and odometry scale (mapping only)", truth,
+             read_tum(ablation / "mapping" / "poses.tum"), seconds, n, True))
+    for name in ("plain", "drift"):
+        summary = json.loads((out / name / "run" / "mapping" / "summary.json").read_text())
+        cameras = summary["self_calibration"]["cameras"]
+        found = [f"{camera} principal point off by ({c['principal_point_offset_px'][0]:.3f}, "
+                 f"{c['principal_point_offset_px'][1]:.3f}) px, focal by "
+                 f"{100 * c['focal_ratio']:+.3f} %" for camera, c in cameras.items()]
+        emit(f"\n{name}: odometry scale {summary['quality']['odometry_scale']:.5f}; "
+             + "; ".join(found))
     if not args.skip_colmap:
         for mapper in ("incremental", "global"):
             estimate, seconds, registered = colmap(out, truth, mapper)

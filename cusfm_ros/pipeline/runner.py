@@ -239,10 +239,13 @@ class StageRunner:
 def _summary(stages: dict) -> dict:
     """The headline counts of a run, gathered from the stages."""
     get = lambda stage, key: stages.get(stage, {}).get(key)  # noqa: E731
-    return {"keyframes": get("keyframes", "keyframes"), "pairs": get("pairs", "pairs"),
+    return {"pose_source": get("keyframes", "pose_source"),
+            "keyframes": get("keyframes", "keyframes"), "pairs": get("pairs", "pairs"),
             "verified_matches": get("mapping", "verified_matches"),
             "tracks": get("mapping", "tracks"), "points": get("mapping", "points"),
             "observations": get("mapping", "observations"),
             "mean_reprojection_error_px": get("mapping", "mean_reprojection_error_px"),
             "loops": get("loops", "loops"),
+            "odometry_scale": get("mapping", "odometry_scale"),
+            "camera_self_calibration": get("mapping", "camera_self_calibration"),
             "seconds_per_stage": {k: v.get("seconds") for k, v in stages.items()}}

@@ -38,6 +38,8 @@ class BundleOptions:
     relative_sigma_m: float = 0.05
     """Sigma of the sequential (odometry) relative-pose factors, translation."""
     relative_sigma_deg: float = 0.5
+    odometry_robust_sigmas: float = 3.0
+    """Huber threshold of the odometry factors in their sigmas (0: plain least squares)."""
     rigid_sigma_m: float = 0.002
     """Camera mode: sigma of the factors tying the images of one rig sample together."""
     rigid_sigma_deg: float = 0.05
@@ -63,8 +65,10 @@ class BundleOptions:
                   self.rigid_sigma_m, self.rigid_sigma_deg, self.fixed_sigma_m,
                   self.fixed_sigma_deg, self.extrinsic_prior_sigma_m,
                   self.extrinsic_prior_sigma_deg, self.robust_threshold_px)
-        if min(sigmas) <= 0:
+        if not min(sigmas) > 0:
             raise ConfigError("bundle adjustment sigmas and thresholds must be positive")
+        if not self.odometry_robust_sigmas >= 0:
+            raise ConfigError("bundle_adjustment.odometry_robust_sigmas must be >= 0")
 
 
 @dataclass
@@ -77,14 +81,27 @@ class RelativeFactors:
     """(K, 4, 4)"""
     sigma_m: np.ndarray
     sigma_deg: np.ndarray
+    odometry: np.ndarray | None = None
+    """(K,) the factor is an odometry measurement (its scale may be estimated); rigid rig
+    relations are not. None: every factor is."""
 
     @classmethod
     def empty(cls) -> RelativeFactors:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)),
-                   np.zeros(0), np.zeros(0))
+                   np.zeros(0), np.zeros(0), np.zeros(0, bool))
 
     def __len__(self) -> int:
         return len(self.a)
+
+    def odometry_mask(self) -> np.ndarray:
+        return np.ones(len(self), bool) if self.odometry is None else self.odometry
+
+    def rescaled(self, scale: float) -> RelativeFactors:
+        """The odometry factors with their translations multiplied by ``scale``."""
+        a_from_b = self.a_from_b.copy()
+        a_from_b[self.odometry_mask(), :3, 3] *= scale
+        return RelativeFactors(self.a, self.b, a_from_b, self.sigma_m, self.sigma_deg,
+                               self.odometry)
 
 
 @dataclass
@@ -244,9 +261,15 @@ class BundleAdjuster:
                     measured, noise, x(node), p(pr.obs_point[m]), calibration, sensors[sensor])
             graph.add(factor)
         rel = pr.relative
+        odometry = rel.odometry_mask()
+        huber = (gtsam.noiseModel.mEstimator.Huber.Create(o.odometry_robust_sigmas)
+                 if o.odometry_robust_sigmas > 0 else None)
         for k in range(len(rel)):
             noise = gtsam.noiseModel.Diagonal.Sigmas(_noise_sigmas(rel.sigma_deg[k],
                                                                    rel.sigma_m[k]))
+            if huber is not None and odometry[k]:
+                # a jump in the odometry is down-weighted, not trusted (rig relations are)
+                noise = gtsam.noiseModel.Robust.Create(huber, noise)
             graph.add(gtsam.BetweenFactorPose3(x(rel.a[k]), x(rel.b[k]),
                                                gtsam.Pose3(rel.a_from_b[k]), noise))
         fixed_noise = gtsam.noiseModel.Diagonal.Sigmas(_noise_sigmas(o.fixed_sigma_deg,

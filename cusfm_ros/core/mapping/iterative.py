@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from cusfm_ros.core.mapping.bundle_adjustment import (BundleAdjuster, BundleOptions,
                                                       BundleProblem, RelativeFactors)
+from cusfm_ros.core.mapping.self_calibration import (SelfCalibrationOptions, apply_offsets,
+                                                     estimate_offsets, shared_tracks)
 from cusfm_ros.core.mapping.triangulation import TriangulationOptions, triangulate_tracks
 from cusfm_ros.errors import ConfigError, MappingError
 
@@ -37,6 +39,13 @@ class IterativeMappingOptions:
     converged_fraction: float = 0.01
     """Stage 1 stops when fewer than this fraction of observations change status."""
     min_points: int = 20
+    estimate_odometry_scale: bool = True
+    """With metric visual depth (cameras that share tracks: stereo), the odometry's scale is
+    estimated during the robust stage and its sequential factors rescaled, so the stereo
+    baseline, not the odometry, sets the scale. Without, the odometry is the scale."""
+    self_calibration: SelfCalibrationOptions = field(default_factory=SelfCalibrationOptions)
+    """Principal-point offsets of the rig's cameras against the first, estimated during the
+    robust stage and taken out of the observations (``self_calibration`` module)."""
 
     def __post_init__(self) -> None:
         if not 0 < self.stage2_max_error_px <= self.stage1_max_error_px:
@@ -75,6 +84,16 @@ class MappingResult:
     seconds: float
     sensor_covariance: np.ndarray | None = None
     """(6S, 6S) of the final adjustment when asked (``BundleResult.sensor_covariance``)."""
+    camera_corrections: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
+    """Sensor -> (offset_px (2,), focal_ratio) taken out of its observations: observed =
+    principal point + (1 + focal_ratio) * (geometric - principal point) + offset_px."""
+    self_calibration: list[dict] = field(default_factory=list)
+    """Each estimate: camera, offset, focal ratio and their sigmas, scale slope, points,
+    applied."""
+    odometry_scale: float = 1.0
+    """Factor the odometry's translations were found off by (1: not estimated, or exact)."""
+    self_calibration_settled: bool | None = None
+    """The last self-calibration update was below ``settled_px`` (None: none ran)."""
 
 
 class IterativeMapper:
@@ -169,6 +188,18 @@ class IterativeMapper:
         rounds = []
         adjuster = BundleAdjuster(self.bundle)
         stage, round_ = 1, 0
+        calibration = o.self_calibration
+        # with extrinsic refinement a rotation of a camera and its principal point trade off:
+        # the extrinsics asked for are refined, the images taken as calibrated
+        calibrated = (not calibration.enabled or poses.optimize_extrinsics
+                      or len(set(poses.image_sensor.tolist())) < 2)
+        corrections: dict[int, tuple[np.ndarray, float]] = {}
+        estimates_log: list[dict] = []
+        odometry_scale = 1.0
+        settled = None
+        metric = (o.estimate_odometry_scale and len(poses.relative) > 0
+                  and shared_tracks(poses.image_sensor, data.obs_image, data.offsets, active)
+                  >= calibration.min_points)
         while True:
             robust = stage == 1
             threshold_px = o.stage1_max_error_px if stage == 1 else o.stage2_max_error_px
@@ -189,6 +220,17 @@ class IterativeMapper:
                 retried = len(retry)
                 added = self._triangulate(data, poses, retry, points, active)
             changed = int(np.sum(active != before))
+            if stage == 1 and metric:
+                step = self._odometry_scale(poses)
+                odometry_scale *= step
+                poses = replace(poses, relative=poses.relative.rescaled(step))
+                logger.info("mapping: the odometry's scale against the images: %.5f",
+                            odometry_scale)
+            if stage == 1 and not calibrated:
+                data, step_px = self._self_calibrate(data, poses, active, corrections,
+                                                     estimates_log)
+                settled = step_px < calibration.settled_px
+                calibrated = settled or len(estimates_log) >= calibration.max_rounds
             entry = {"stage": stage, "round": round_ + 1, "points": int(len(tracks)),
                      "observations": int(problem.obs_image.size),
                      "cost_before": result.error_before, "cost_after": result.error_after,
@@ -206,14 +248,66 @@ class IterativeMapper:
             if stage == 2:
                 break
             round_ += 1
-            converged = changed < o.converged_fraction * max(int(active.sum()), 1)
+            converged = (changed < o.converged_fraction * max(int(active.sum()), 1)
+                         and calibrated)
             if converged or round_ >= o.max_rounds:
                 stage, round_ = 2, 0
         if np.sum(np.isfinite(points[:, 0])) < o.min_points:
             raise MappingError(f"mapping kept only {int(np.isfinite(points[:, 0]).sum())} "
                                f"points after outlier removal (need {o.min_points})")
         return MappingResult(poses.world_from_node, poses.node_from_sensor, points, active,
-                             rounds, time.perf_counter() - started, result.sensor_covariance)
+                             rounds, time.perf_counter() - started, result.sensor_covariance,
+                             corrections, estimates_log, odometry_scale,
+                             settled if estimates_log else None)
+
+    @staticmethod
+    def _odometry_scale(poses: BundleProblem) -> float:
+        """Least-squares factor from the odometry factors' translations to the current
+        poses' relative translations."""
+        rel = poses.relative
+        mask = rel.odometry_mask()
+        w = poses.world_from_node
+        refined = np.linalg.inv(w[rel.a[mask]]) @ w[rel.b[mask]]
+        measured = rel.a_from_b[mask, :3, 3]
+        norm = float(np.sum(measured * measured))
+        if norm < 1e-12:
+            return 1.0
+        return float(np.sum(refined[:, :3, 3] * measured)) / norm
+
+    def _self_calibrate(self, data: MappingInput, poses: BundleProblem, active: np.ndarray,
+                        corrections: dict[int, tuple[np.ndarray, float]], log: list[dict]
+                        ) -> tuple[MappingInput, float]:
+        """One principal-point and focal estimate per camera against the others; the
+        observations with the applied ones taken out (``corrections`` updated in place), and
+        the largest applied update in pixels at the image's edge (0 when within the noise)."""
+        estimates = estimate_offsets(poses, data.obs_image, data.obs_xy, data.obs_per_px,
+                                     data.offsets, active, self.options.self_calibration,
+                                     data.obs_next_node, data.obs_alpha)
+        step_px = 0.0
+        for e in estimates:
+            entry = {"camera": e.camera, "offset_px": e.offset_px.tolist(),
+                     "offset_sigma_px": e.sigma_px.tolist(), "focal_ratio": e.focal_ratio,
+                     "focal_ratio_sigma": e.focal_ratio_sigma, "scale_slope": e.scale_slope,
+                     "points": e.points, "applied": e.applied}
+            log.append(entry)
+            logger.info("mapping: self-calibration of camera %d against the others: principal "
+                        "point off by (%.3f, %.3f) px, focal length by %.3f %% (%d points, "
+                        "scale slope %.4f)%s", e.camera, *e.offset_px, 100 * e.focal_ratio,
+                        e.points, e.scale_slope, "" if e.applied else ": not applied")
+            if e.applied:
+                # compose: observed = (1 + E) * geometric + D about the principal point
+                offset, ratio = corrections.get(e.camera, (np.zeros(2), 0.0))
+                corrections[e.camera] = ((1 + ratio) * e.offset_px + offset,
+                                         (1 + ratio) * (1 + e.focal_ratio) - 1)
+                # an update within three sigma of its own noise counts as none
+                step = max(float(np.max(np.abs(e.offset_px))), abs(e.focal_ratio) * e.edge_px)
+                noise = 3.0 * max(float(np.max(e.sigma_px)), e.focal_ratio_sigma * e.edge_px)
+                step_px = max(step_px, step if step > noise else 0.0)
+        if not any(e.applied for e in estimates):
+            return data, 0.0
+        sensor_of_obs = poses.image_sensor[data.obs_image]
+        return replace(data, obs_xy=apply_offsets(data.obs_xy, data.obs_per_px, sensor_of_obs,
+                                                  estimates)), step_px
 
 
 def empty_template(world_from_node, node_from_sensor, image_node, image_sensor,

@@ -55,15 +55,16 @@ class Observations:
     counts: dict
 
 
-def _relative(a, b, poses, sigma_m, sigma_deg) -> RelativeFactors:
+def _relative(a, b, poses, sigma_m, sigma_deg, odometry: bool = True) -> RelativeFactors:
     a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
     return RelativeFactors(a, b, invert_matrices(poses[a]) @ poses[b],
-                           np.full(len(a), sigma_m), np.full(len(a), sigma_deg))
+                           np.full(len(a), sigma_m), np.full(len(a), sigma_deg),
+                           np.full(len(a), odometry))
 
 
 def _concat(factors: list[RelativeFactors]) -> RelativeFactors:
     return RelativeFactors(*(np.concatenate([getattr(f, k) for f in factors]) for k in
-                             ("a", "b", "a_from_b", "sigma_m", "sigma_deg")))
+                             ("a", "b", "a_from_b", "sigma_m", "sigma_deg", "odometry")))
 
 
 def build_pose_structure(keyframes: KeyframeSet, start_world_from_rig: np.ndarray,
@@ -119,7 +120,8 @@ def build_pose_structure(keyframes: KeyframeSet, start_world_from_rig: np.ndarra
         for s in range(len(sample_ids)):
             members = np.nonzero(image_sample == s)[0]
             factors.append(_relative(np.full(len(members) - 1, members[0]), members[1:],
-                                     start_cam, b.rigid_sigma_m, b.rigid_sigma_deg))
+                                     start_cam, b.rigid_sigma_m, b.rigid_sigma_deg,
+                                     odometry=False))
         fixed_images = np.nonzero(np.isin(image_sample, fixed))[0]
         template = empty_template(start_cam, np.eye(4)[None], np.arange(len(images)),
                                   np.zeros(len(images), np.int64),
@@ -226,12 +228,32 @@ def path_length_m(world_from_rig: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(world_from_rig[:, :3, 3], axis=0), axis=1).sum())
 
 
+def odometry_jumps(structure: PoseStructure, world_from_rig: np.ndarray, scale: float,
+                   threshold_m: float) -> list[dict]:
+    """Odometry steps (rig frame type) whose translation, at the estimated scale, disagrees
+    with the refined one by more than ``threshold_m``: stamp of the step's end and the
+    disagreement."""
+    template = getattr(structure, "template", None)
+    if structure.frame_type != "rig" or template is None or not len(template.relative):
+        return []
+    rel = template.relative
+    mask = rel.odometry_mask()
+    a, b = rel.a[mask], rel.b[mask]
+    measured = rel.a_from_b[mask, :3, 3] * scale
+    refined = (invert_matrices(world_from_rig[a]) @ world_from_rig[b])[:, :3, 3]
+    change = np.linalg.norm(refined - measured, axis=1)
+    return [{"stamp_ns": int(structure.sample_stamps_ns[b[k]]), "change_m": float(change[k])}
+            for k in np.nonzero(change > threshold_m)[0]]
+
+
 def mapping_quality(structure: PoseStructure, world_from_rig: np.ndarray,
                     result: MappingResult, max_pose_change_m: float,
-                    max_odometry_scale_change: float = 0.1) -> dict:
+                    max_odometry_scale_change: float = 0.1,
+                    odometry_jump_m: float | None = None) -> dict:
     """How far the refined poses moved from their start and from the input's relative motion,
     and the scale of the input relative to the refined path; ``suspicious`` lists the
-    reasons to believe they are worse (or the input wrong beyond its noise)."""
+    reasons to believe they are worse (or the input wrong beyond its noise): among them
+    odometry steps off the refined motion by more than ``odometry_jump_m``."""
     start = structure.start_world_from_rig
     moved = np.linalg.norm(world_from_rig[:, :3, 3] - start[:, :3, 3], axis=1)
     inp = structure.input_world_from_rig
@@ -258,6 +280,20 @@ def mapping_quality(structure: PoseStructure, world_from_rig: np.ndarray,
         suspicious.append(f"a pose moved {quality['max_pose_change_m']:.1f} m from its start")
     if last["cost_after"] > last["cost_before"] * 1.0001:
         suspicious.append("the final adjustment increased the cost")
+    if getattr(result, "self_calibration_settled", None) is False:
+        suspicious.append("the stereo self-calibration did not settle (its last update was "
+                          "still large): something it does not model — a rolling shutter, "
+                          "unsynchronized cameras, a wrong calibration — is in the images")
+    if odometry_jump_m is not None:
+        jumps = odometry_jumps(structure, world_from_rig,
+                               getattr(result, "odometry_scale", 1.0), odometry_jump_m)
+        quality["odometry_jumps"] = jumps
+        if jumps:
+            worst = max(jumps, key=lambda j: j["change_m"])
+            suspicious.append(
+                f"the odometry disagrees with the images by more than {odometry_jump_m:.2f} m "
+                f"at {len(jumps)} step(s), worst {worst['change_m']:.2f} m at stamp "
+                f"{worst['stamp_ns'] * 1e-9:.3f} s: a jump beyond its noise")
     quality["suspicious"] = suspicious
     for reason in suspicious:
         logger.warning("mapping: refined poses may be worse than the input: %s", reason)
@@ -283,10 +319,15 @@ def pixel_errors(keyframes: KeyframeSet, structure: PoseStructure, observations:
                        result.points[track_of_obs[obs]]) + cam_from_world[:, :3, 3]
     errors = np.full(int(obs.sum()), np.nan)
     cameras = np.array([k.camera_name for k in structure.images])[data.obs_image[obs]]
-    for name in keyframes.rig.names:
+    for s, name in enumerate(keyframes.rig.names):
         sel = cameras == name
         if sel.any():
-            uv, _ = keyframes.rig[name].camera.project(in_cam[sel])
+            camera = keyframes.rig[name].camera
+            uv, _ = camera.project(in_cam[sel])
+            # against the self-calibrated image (rig frame type: sensor = camera)
+            offset, ratio = result.camera_corrections.get(s, (np.zeros(2), 0.0))
+            principal, _ = camera.project(np.array([[0.0, 0.0, 1.0]]))
+            uv = principal + (1 + ratio) * (uv - principal) + offset
             errors[sel] = np.linalg.norm(uv - observations.obs_uv_px[obs][sel], axis=1)
     finite = errors[np.isfinite(errors)]
     stats = {"mean": float(finite.mean()) if len(finite) else float("nan"),

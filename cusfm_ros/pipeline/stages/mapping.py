@@ -61,6 +61,9 @@ class MappingStageOptions:
     max_odometry_scale_change: float = 0.1
     """A refined path longer or shorter than the input's by more than this fraction is
     reported as suspicious."""
+    odometry_jump_sigmas: float = 5.0
+    """An odometry step (at the odometry's estimated scale) off the refined motion by more
+    than this many ``bundle_adjustment.relative_sigma_m`` is reported, with its stamp."""
 
     def __post_init__(self) -> None:
         if self.optimize_extrinsics and self.rolling_shutter_line_delay_s > 0:
@@ -75,6 +78,8 @@ class MappingStageOptions:
             raise ConfigError("max_pose_change_m must be > 0")
         if self.max_odometry_scale_change <= 0:
             raise ConfigError("max_odometry_scale_change must be > 0")
+        if not self.odometry_jump_sigmas > 0:
+            raise ConfigError("mapping.odometry_jump_sigmas must be > 0")
 
 
 @dataclass
@@ -130,7 +135,8 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
     if options.optimize_extrinsics and result.sensor_covariance is not None:
         covariance = covariance_in_parent(result.sensor_covariance, result.node_from_sensor)
     quality = mapping_quality(structure, world_from_rig, result, options.max_pose_change_m,
-                              options.max_odometry_scale_change)
+                              options.max_odometry_scale_change,
+                              options.odometry_jump_sigmas * bundle.relative_sigma_m)
     reprojection, per_observation = pixel_errors(keyframes, structure, observations, result)
     valid = np.isfinite(result.points[:, 0])
     track_of_obs = np.repeat(np.arange(len(data.offsets) - 1), np.diff(data.offsets))
@@ -143,7 +149,21 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
     counts.update({"points": len(points), "observations": points.num_observations,
                    "mean_reprojection_error_px": reprojection["mean"],
                    "rounds": len(result.rounds)})
+    quality["odometry_scale"] = result.odometry_scale
+    names = keyframes.rig.names
+    if result.camera_corrections:
+        quality["camera_self_calibration"] = "; ".join(
+            f"{names[s]}: principal point ({offset[0]:+.3f}, {offset[1]:+.3f}) px, focal "
+            f"{100 * ratio:+.3f} %" for s, (offset, ratio) in
+            sorted(result.camera_corrections.items()))
     summary = {"counts": counts, "quality": quality, "reprojection_px": reprojection,
+               "self_calibration": {
+                   "cameras": {names[s]: {"principal_point_offset_px": offset.tolist(),
+                                          "focal_ratio": ratio}
+                               for s, (offset, ratio) in sorted(
+                                   result.camera_corrections.items())},
+                   "estimates": [{**e, "camera": names[e["camera"]]}
+                                 for e in result.self_calibration]},
                "rounds": result.rounds,
                "view_graph_component_sizes": observations.component_sizes}
     if covariance is not None:
@@ -156,7 +176,8 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
 
 class MappingStage(Stage):
     name = "mapping"
-    version = 2  # 2: summary.json keeps the joint extrinsic covariance when asked
+    version = 3  # 2: summary.json keeps the joint extrinsic covariance when asked; 3: stereo
+    # principal-point self-calibration and the odometry's scale estimated
     sections = {"mapping": MappingStageOptions, "refinement": IterativeMappingOptions,
                 "bundle_adjustment": BundleOptions}
     reads = ("mapping", "refinement", "bundle_adjustment", "frame_type")
