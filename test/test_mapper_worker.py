@@ -38,9 +38,11 @@ def test_cancelled_job_stops_promptly_and_leaves_nothing_complete(tmp_path, mode
     assert any(e.kind == "log" and "stage keyframes" in e.data["message"] for e in events)
     assert not any(e.kind == "done" for e in events)
     assert events[-1].kind == "exit"
-    for name in ("report.json", "poses.tum", "results.mcap", "map", "points.ply"):
+    for name in ("COMPLETE", "poses.tum", "results.mcap", "map", "points.ply"):
         assert not (run / name).exists(), name
     assert not list(run.rglob("*.tmp"))
+    report = json.loads((run / "report.json").read_text())
+    assert report["status"] == "failed" and "interrupted" in report["error"], report
     record = json.loads((run / "stages" / "features.json").read_text())
     assert record["status"] == "running"  # the next run redoes it (the runner's resume)
 

@@ -29,7 +29,7 @@ def _written(run):
     """Every stage output file with its modification time (not the runner's bookkeeping:
     the stage records, report.json and the page drawn from it)."""
     return {p: p.stat().st_mtime_ns for p in run.rglob("*") if p.is_file()
-            and p.name not in ("report.json", "report.html")
+            and p.name not in ("report.json", "report.html", "COMPLETE")
             and "stages" not in p.relative_to(run).parts}
 
 

@@ -16,8 +16,8 @@ No stage spells a path literal; each asks its ``RunDir``. Layout:
     map/                  the map store for localization and map update (io/map_store.py)
     stages/<stage>.json   the runner's record of each stage (status, fingerprint, counts)
     initial_poses.tum, poses.tum, extrinsics.yaml, sparse/ (with COLMAP 4 rigs and frames),
-    points.ply, results.mcap, exports/ (nerfstudio, KITTI, TUM per camera), report.json,
-    report.html
+    points.ply, results.mcap, exports/ (nerfstudio, KITTI, TUM per camera), report.json
+    (status: running | complete | failed), report.html, COMPLETE (the last run completed)
 """
 
 from __future__ import annotations
@@ -146,6 +146,11 @@ class RunDir:
     def exports(self) -> Path:
         """transforms.json (nerfstudio), kitti/<camera>.txt (+ _times.txt), tum/<camera>.tum"""
         return self.root / "exports"
+
+    @property
+    def complete_marker(self) -> Path:
+        """Written last by a run that completed; absent while one runs or after one failed."""
+        return self.root / "COMPLETE"
 
     @property
     def report(self) -> Path:

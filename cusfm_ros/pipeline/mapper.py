@@ -25,7 +25,23 @@ class Mapper:
               steps: list[str] | None = None, overwrite: bool = False) -> dict:
         """Run ``steps`` (default: all) of the mapper; returns the report (report.json) and,
         once the results are exported, writes ``report.html`` beside it."""
-        report = StageRunner(STAGES, self.options).solve(run_dir, bag, steps, overwrite)
+        try:
+            report = StageRunner(STAGES, self.options).solve(run_dir, bag, steps, overwrite)
+        except BaseException:
+            if _failed_here(Path(run_dir)):  # the page says so; it shows nothing as new
+                write_page(run_dir)
+            raise
         if "export" in report["stages"]:
             write_page(run_dir)
         return report
+
+
+def _failed_here(run_dir: Path) -> bool:
+    """This run wrote ``status: failed`` and an earlier run drew a page."""
+    import json
+
+    try:
+        status = json.loads((run_dir / "report.json").read_text()).get("status")
+    except (OSError, ValueError):
+        return False
+    return status == "failed" and (run_dir / "report.html").is_file()

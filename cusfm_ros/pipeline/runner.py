@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import platform
 import shutil
 import time
@@ -84,6 +85,29 @@ def _versions() -> dict[str, str]:
     return out
 
 
+def remove_temporaries(root: Path) -> int:
+    """Remove what atomic writes of an interrupted run left (``.NAME.XXXX.tmp`` files and
+    folders, ``.NAME.old.PID`` folders set aside for a swap). Only with the run directory's
+    lock held: nobody else is writing there."""
+    removed = 0
+    for folder, dirs, files in os.walk(root):
+        for name in list(dirs) + files:
+            if _is_temporary(name):
+                _remove(Path(folder) / name)
+                removed += 1
+                if name in dirs:
+                    dirs.remove(name)
+    if removed:
+        logger.info("removed %d temporary files of an interrupted run in %s", removed, root)
+    return removed
+
+
+def _is_temporary(name: str) -> bool:
+    if not name.startswith(".") or name.count(".") < 3:
+        return False
+    return name.endswith(".tmp") or name.rsplit(".", 1)[-1].isdigit() and ".old." in name
+
+
 def _check_run_dir(run: RunDir) -> None:
     """``--out`` must be new, empty or a cusfm run directory: a rerun removes the outputs of
     the stages it redoes, so a folder of someone else's files is refused, never emptied."""
@@ -144,24 +168,44 @@ class StageRunner:
 
     def solve(self, run_dir: str | Path, bag: str | Path | None = None,
               steps: list[str] | None = None, overwrite: bool = False) -> dict:
+        """Run ``steps``. While it runs, ``report.json`` says ``status: running`` and
+        ``RUN_DIR/COMPLETE`` is absent; it ends ``complete`` with the marker written, or
+        ``failed`` with the error and the stage it stopped in (then re-raised)."""
         run = RunDir(run_dir)
         steps = self.check_steps(steps)
         _check_run_dir(run)
         run.root.mkdir(parents=True, exist_ok=True)
         with run_dir_lock(run.stages_dir / "lock"):  # one process per run directory
+            remove_temporaries(run.root)
             if bag is not None:
                 _bind_bag(run, Path(bag), overwrite)
             digests = DigestCache(run.stages_dir / "digests.json", run.root)
             started = time.perf_counter()
             entries: dict[str, dict] = {}
+            current = None
+            run.complete_marker.unlink(missing_ok=True)
+            self._report(run, bag, entries, 0.0, steps, {"status": "running"})
             try:
                 for index, stage in enumerate(s for s in self.stages if s.name in steps):
+                    current = stage.name
                     logger.info("=== stage %s (%d/%d) ===", stage.name, index + 1,
                                 len(steps))
                     entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite)
-            finally:
+            except BaseException as exc:
                 digests.save()
-            return self._report(run, bag, entries, time.perf_counter() - started)
+                error = str(exc) or type(exc).__name__
+                if not isinstance(exc, Exception):  # Ctrl-C, a worker's SIGTERM
+                    error = "interrupted (Ctrl-C or SIGTERM); the next run resumes"
+                self._report(run, bag, entries, time.perf_counter() - started, steps,
+                             {"status": "failed", "failed_stage": current, "error": error})
+                raise
+            digests.save()
+            report = self._report(run, bag, entries, time.perf_counter() - started, steps,
+                                  {"status": "complete"})
+            with atomic_write(run.complete_marker) as handle:
+                json.dump({"finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "steps": steps,
+                           "report": run.report.name}, handle, indent=1)
+            return report
 
     # ----------------------------------------------------------------------------- a stage
     def _run_stage(self, stage: Stage, run: RunDir, bag, digests: DigestCache,
@@ -216,17 +260,22 @@ class StageRunner:
             json.dump(record, handle, indent=1, default=str)
 
     # ------------------------------------------------------------------------------ report
-    def _report(self, run: RunDir, bag, entries: dict[str, dict], seconds: float) -> dict:
+    def _report(self, run: RunDir, bag, entries: dict[str, dict], seconds: float,
+                steps: list[str], status: dict) -> dict:
         stages = {}
         for stage in self.stages:
             entry = entries.get(stage.name) or _read_record(run.stage_record(stage.name))
             if not entry or entry.get("status") != "complete":
                 continue
+            if status["status"] != "complete" and stage.name in steps and \
+                    stage.name not in entries:  # not (re)checked by this run: not current
+                continue
             stages[stage.name] = {"seconds": entry["seconds"], "reused": entry.get("reused",
                                                                                    True),
                                   **entry["counts"], "fingerprint": entry["fingerprint"],
                                   "options": entry["options"]}
-        report = {"version": __version__, "python": platform.python_version(),
+        report = {**status, "steps": steps,
+                  "version": __version__, "python": platform.python_version(),
                   "versions": _versions(), "bag": str(bag) if bag is not None else None,
                   "stages": stages, "summary": _summary(stages),
                   "options": options_as_dict(self.options),

@@ -210,6 +210,15 @@ def render(data: RunData) -> str:
                      f'src="data:image/png;base64,{_png(figure)}"><figcaption>'
                      f"{html.escape(caption)}</figcaption></figure>")
     title = f"cusfm run {data.root.name}"
+    status = data.report.get("status")
+    banner = ""
+    if status in ("failed", "running"):
+        what = (f"FAILED in stage {data.report.get('failed_stage')}: "
+                f"{data.report.get('error', '')}" if status == "failed"
+                else "RUNNING: not finished")
+        banner = (f'<p id="status" style="background:#fdd;padding:0.5em">{html.escape(what)}.'
+                  " The figures show what the completed stages left; nothing here is the "
+                  "result of this run.</p>")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>body{{font-family:sans-serif;margin:1.5em;max-width:1400px}}
@@ -218,7 +227,7 @@ table{{border-collapse:collapse}}th,td{{border:1px solid #ccc;padding:2px 8px;
 text-align:left}}</style></head>
 <body data-figures="{len(parts)}">
 <h1>{html.escape(title)}</h1>
-<p>{html.escape(str(data.root))}</p>
+<p>{html.escape(str(data.root))}</p>{banner}
 <h2>Summary</h2>{_table(rows)}
 <h2>Suspicious</h2>{suspicious}
 <h2>Figures</h2>

@@ -84,7 +84,7 @@ def test_late_subscriber_gets_the_latched_results(sim, tmp_path, ros_env, models
         assert values[0].integer_value == 512 and values[1].string_value == str(sim / "bag")
         assert not (run / "poses.tum").exists(), "the map should still be running"
         # subscribe only once the map is done: latched topics must still be delivered
-        assert _spin_until(client, lambda: (run / "report.json").is_file(), 240)
+        assert _spin_until(client, lambda: (run / "COMPLETE").is_file(), 240)
         time.sleep(1.0)
         received: dict[str, list] = {}
         for topic, kind in (("/cusfm/path", Path), ("/cusfm/initial_path", Path),
@@ -153,10 +153,13 @@ def test_signal_during_the_run_stops_promptly_leaving_nothing_complete(sim, tmp_
     assert time.monotonic() - stopped < 10
     assert code == -signum, output
     assert "Traceback" not in output and "rerun the same command to resume" in output, output
-    for name in ("report.json", "poses.tum", "results.mcap", "points.ply", "map"):
+    for name in ("COMPLETE", "poses.tum", "results.mcap", "points.ply", "map"):
         assert not (run / name).exists(), name
     assert not list(run.rglob("*.tmp")), list(run.rglob("*.tmp"))
     import json
+
+    report = json.loads((run / "report.json").read_text())
+    assert report["status"] == "failed" and report["failed_stage"] == "features", report
 
     records = {p.stem: json.loads(p.read_text())["status"]
                for p in (run / "stages").glob("*.json") if p.stem != "digests"}

@@ -1,0 +1,76 @@
+"""The run directory as a unit: report.json's status (running, complete, failed), the
+COMPLETE marker, a failed rerun that leaves no earlier result looking current, and the
+temporary files of a killed run cleaned at the next start."""
+
+import json
+
+import pytest
+
+from cusfm_ros.cli.main import main
+from cusfm_ros.sim.generator import SimulationOptions, Simulator
+
+FAST = ["--min-translation-m", "0.3", "--features", "sift", "--max-keypoints", "512",
+        "--skip-vocabulary", "--skip-loops", "--skip-map"]
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory):
+    return Simulator(SimulationOptions(
+        scene="indoor", rig="stereo", frames=20, image_width=320, image_height=240, seed=7)
+    ).generate(tmp_path_factory.mktemp("status") / "sim")
+
+
+def _report(run):
+    return json.loads((run / "report.json").read_text())
+
+
+def test_status_marker_and_a_failed_rerun(small_bag, tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["map", str(small_bag / "bag"), "--out", str(run)] + FAST
+    assert main(args) == 0
+    report = _report(run)
+    assert report["status"] == "complete" and "error" not in report
+    marker = json.loads((run / "COMPLETE").read_text())
+    assert marker["steps"] == report["steps"] and "finished" in marker
+    # a rerun whose mapping fails: the report says so, the marker is gone
+    capsys.readouterr()
+    assert main(args + ["--set", "refinement.min_points=1000000"]) == 1
+    err = capsys.readouterr().err
+    assert "too few matches to triangulate" in err and len(err.strip().splitlines()) == 1
+    report = _report(run)
+    assert report["status"] == "failed" and "too few matches" in report["error"]
+    assert report["failed_stage"] == "mapping"
+    assert not (run / "COMPLETE").exists()
+    assert "FAILED in stage mapping: too few matches" in (run / "report.html").read_text()
+    # the stages before the failure stay usable; the earlier map is not offered as current
+    assert "matching" in report["stages"] and "mapping" not in report["stages"]
+    assert not (run / "mapping").exists()
+    # and the next good run completes again, reusing what it can
+    assert main(args) == 0
+    report = _report(run)
+    assert report["status"] == "complete" and (run / "COMPLETE").is_file()
+    assert report["stages"]["matching"]["reused"] and not report["stages"]["mapping"]["reused"]
+
+
+def test_temporary_files_of_a_killed_run_are_removed_at_the_next_start(small_bag, tmp_path,
+                                                                       caplog):
+    run = tmp_path / "run"
+    args = ["map", str(small_bag / "bag"), "--out", str(run)] + FAST
+    assert main(args + ["--steps", "keyframes"]) == 0
+    # what atomic writes leave behind when the process dies between create and rename
+    leftovers = [run / ".keyframes.k2j3.tmp", run / "features" / ".features.h5.x81.tmp",
+                 run / ".poses.tum.a1b2.tmp", run / ".sparse.old.4242"]
+    leftovers[0].mkdir()
+    (leftovers[0] / "cam0").mkdir()
+    (leftovers[0] / "cam0" / "1.png").write_bytes(b"\x89PNG")
+    leftovers[1].parent.mkdir()
+    leftovers[1].write_bytes(b"partial")
+    leftovers[2].write_text("0 0 0")
+    leftovers[3].mkdir()
+    keep = run / "keyframes" / "notes.tmp"  # not a name atomic writes make: left alone
+    keep.write_text("mine")
+    caplog.set_level("INFO")
+    assert main(args + ["--steps", "keyframes"]) == 0
+    assert not any(p.exists() for p in leftovers)
+    assert keep.is_file()
+    assert "removed 4 temporary files of an interrupted run" in caplog.text
