@@ -31,6 +31,10 @@ class AlikedOptions:
     threads: int = 0
 
     def __post_init__(self) -> None:
+        if self.max_keypoints < 0 or self.resize_max_px < 0 or self.threads < 0:
+            raise ConfigError(f"ALIKED: max_keypoints, resize_max_px and threads must be >= 0 "
+                              f"(0: no cap / no resize / all cores), got {self.max_keypoints}, "
+                              f"{self.resize_max_px} and {self.threads}")
         if self.detection_threshold <= 0 and self.max_keypoints <= 0:
             raise ConfigError("ALIKED: with detection_threshold <= 0, max_keypoints must be > 0")
         if self.nms_radius < 1:

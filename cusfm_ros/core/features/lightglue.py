@@ -10,6 +10,8 @@ import numpy as np
 from cusfm_ros.core.features.onnx_session import make_session
 from cusfm_ros.core.features.types import FeatureError, Features, Matches
 
+from cusfm_ros.errors import ConfigError
+
 
 @dataclass(frozen=True)
 class LightGlueOptions:
@@ -17,6 +19,11 @@ class LightGlueOptions:
     """Minimum match confidence."""
     device: str = "auto"
     threads: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.filter_threshold < 1 or self.threads < 0:
+            raise ConfigError(f"LightGlue: filter_threshold must be in [0, 1) and threads >= 0, "
+                              f"got {self.filter_threshold} and {self.threads}")
 
 
 def normalize_keypoints(keypoints_px: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:

@@ -8,15 +8,25 @@ import cv2
 import numpy as np
 
 from cusfm_ros.core.features.types import Features, FeatureError, to_grey_uint8
+from cusfm_ros.errors import ConfigError
 
 
 @dataclass(frozen=True)
 class SiftOptions:
     max_keypoints: int = 2048
-    """Strongest keypoints kept; <= 0: all."""
+    """Strongest keypoints kept; 0: all."""
     contrast_threshold: float = 0.02
     root_sift: bool = True
     resize_max_px: int = 0
+
+    def __post_init__(self) -> None:
+        if self.max_keypoints < 0 or self.resize_max_px < 0:
+            raise ConfigError(f"SIFT: max_keypoints and resize_max_px must be >= 0 (0: no "
+                              f"cap / no resize), got {self.max_keypoints} and "
+                              f"{self.resize_max_px}")
+        if not self.contrast_threshold > 0:
+            raise ConfigError(f"SIFT: contrast_threshold must be > 0, got "
+                              f"{self.contrast_threshold}")
 
 
 class SiftExtractor:

@@ -67,6 +67,9 @@ class BundleOptions:
                   self.extrinsic_prior_sigma_deg, self.robust_threshold_px)
         if not min(sigmas) > 0:
             raise ConfigError("bundle adjustment sigmas and thresholds must be positive")
+        if self.max_iterations < 1 or not self.relative_tolerance >= 0:
+            raise ConfigError(f"bundle_adjustment: max_iterations >= 1 and relative_tolerance "
+                              f">= 0, got {self.max_iterations} and {self.relative_tolerance}")
         if not self.odometry_robust_sigmas >= 0:
             raise ConfigError("bundle_adjustment.odometry_robust_sigmas must be >= 0")
 
