@@ -45,11 +45,45 @@ def test_status_marker_and_a_failed_rerun(small_bag, tmp_path, capsys):
     # the stages before the failure stay usable; the earlier map is not offered as current
     assert "matching" in report["stages"] and "mapping" not in report["stages"]
     assert not (run / "mapping").exists()
+    for name in ("poses.tum", "points.ply", "sparse", "results.mcap", "exports"):
+        assert not (run / name).exists(), name  # made from the map that is gone
+    assert "export" not in report["stages"] and not (run / "stages" / "export.json").exists()
+    assert (run / "keyframes").is_dir() and (run / "matching").is_dir()  # kept for the rerun
     # and the next good run completes again, reusing what it can
     assert main(args) == 0
     report = _report(run)
     assert report["status"] == "complete" and (run / "COMPLETE").is_file()
     assert report["stages"]["matching"]["reused"] and not report["stages"]["mapping"]["reused"]
+    assert (run / "poses.tum").is_file() and (run / "sparse").is_dir()
+
+
+def test_random_images_cannot_make_a_map(tmp_path, capsys, models_ready):
+    """Independent noise images with moving odometry: the matcher finds a few chance matches;
+    the mapper refuses to call that a map."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    src = tmp_path / "noise"
+    for folder in ("image_0", "image_1"):
+        (src / folder).mkdir(parents=True)
+        for i in range(12):
+            cv2.imwrite(str(src / folder / f"{i:06d}.png"),
+                        rng.integers(0, 256, (240, 320), dtype=np.uint8))
+    (src / "calib.txt").write_text("P0: 500 0 160 0 0 500 120 0 0 0 1 0\n"
+                                   "P1: 500 0 160 -250 0 500 120 0 0 0 1 0\n")
+    (src / "poses.txt").write_text("".join(f"1 0 0 0 0 1 0 0 0 0 1 {i}\n" for i in range(12)))
+    assert main(["convert", "kitti", str(src), str(tmp_path / "bag"),
+                 "--odom-drift", "0.1,0.02"]) == 0
+    run = tmp_path / "run"
+    capsys.readouterr()
+    code = main(["map", str(tmp_path / "bag"), "--out", str(run), "--min-translation-m", "0.3",
+                 "--max-keypoints", "512", "--skip-vocabulary", "--skip-loops", "--skip-map"])
+    err = capsys.readouterr().err
+    assert code == 1 and len(err.strip().splitlines()) == 1, err
+    # ALIKED + LightGlue match a few hundred noise blobs; about 50 points survive
+    assert "the images cannot support a map: the median image holds" in err, err
+    assert _report(run)["status"] == "failed" and not (run / "poses.tum").exists()
 
 
 def test_temporary_files_of_a_killed_run_are_removed_at_the_next_start(small_bag, tmp_path,

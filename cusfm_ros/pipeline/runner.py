@@ -192,6 +192,7 @@ class StageRunner:
                                 len(steps))
                     entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite)
             except BaseException as exc:
+                self._drop_orphans(run)
                 digests.save()
                 error = str(exc) or type(exc).__name__
                 if not isinstance(exc, Exception):  # Ctrl-C, a worker's SIGTERM
@@ -253,6 +254,22 @@ class StageRunner:
         self._write_record(record_path, entry)
         logger.info("stage %s done in %.1f s: %s", stage.name, seconds, counts)
         return {**entry, "reused": False}
+
+    def _drop_orphans(self, run: RunDir) -> None:
+        """After a failure: the outputs of every stage whose inputs are gone (the stage that
+        makes them removed its old outputs and failed) are removed with their record, in
+        stage order, so nothing derived from a result that no longer exists stays behind."""
+        for stage in self.stages:
+            outputs = [getattr(run, a) for a in stage.outputs + stage.optional_outputs]
+            if not any(path.exists() for path in outputs):
+                continue
+            missing = [a for a in stage.inputs if not getattr(run, a).exists()]
+            if missing:
+                for path in outputs:
+                    _remove(path)
+                run.stage_record(stage.name).unlink(missing_ok=True)
+                logger.warning("%s: removed its outputs: they were made from %s, which the "
+                               "failed run no longer has", stage.name, ", ".join(missing))
 
     @staticmethod
     def _write_record(path: Path, record: dict) -> None:

@@ -61,6 +61,9 @@ class MappingStageOptions:
     max_odometry_scale_change: float = 0.1
     """A refined path longer or shorter than the input's by more than this fraction is
     reported as suspicious."""
+    min_observations_per_image: int = 15
+    """Images with fewer observations of mapped points are reported as suspicious; when the
+    median image has fewer, the images cannot support a map and the stage fails."""
     odometry_jump_sigmas: float = 5.0
     """An odometry step (at the odometry's estimated scale) off the refined motion by more
     than this many ``bundle_adjustment.relative_sigma_m`` is reported, with its stamp."""
@@ -78,6 +81,8 @@ class MappingStageOptions:
             raise ConfigError("max_pose_change_m must be > 0")
         if self.max_odometry_scale_change <= 0:
             raise ConfigError("max_odometry_scale_change must be > 0")
+        if self.min_observations_per_image < 0:
+            raise ConfigError("mapping.min_observations_per_image must be >= 0")
         if not self.odometry_jump_sigmas > 0:
             raise ConfigError("mapping.odometry_jump_sigmas must be > 0")
 
@@ -149,6 +154,8 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
     counts.update({"points": len(points), "observations": points.num_observations,
                    "mean_reprojection_error_px": reprojection["mean"],
                    "rounds": len(result.rounds)})
+    _check_visual_support(structure, data.obs_image[result.inliers], counts,
+                          options.min_observations_per_image, quality)
     quality["odometry_scale"] = result.odometry_scale
     names = keyframes.rig.names
     if result.camera_corrections:
@@ -174,10 +181,39 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
                          points, {**counts, **quality}, summary, covariance)
 
 
+def _check_visual_support(structure, inlier_image: np.ndarray, counts: dict, minimum: int,
+                          quality: dict) -> None:
+    """Fail when the median image holds fewer than ``minimum`` observations of mapped points
+    (random or featureless images, cameras that do not see what the odometry says); report
+    weak images and a view graph in pieces as suspicious."""
+    per_image = np.bincount(inlier_image, minlength=len(structure.images))
+    weak = np.nonzero(per_image < minimum)[0]
+    median = float(np.median(per_image)) if len(per_image) else 0.0
+    quality["median_observations_per_image"] = median
+    if median < minimum:
+        raise MappingError(
+            f"the images cannot support a map: the median image holds {median:.0f} "
+            f"observations of mapped points (need {minimum}; {len(weak)} of {len(per_image)} "
+            "images below): too little texture or overlap, or images that do not show the "
+            "motion the poses say (mapping.min_observations_per_image sets the bar)")
+    reasons = []
+    if len(weak):
+        first = structure.images[weak[0]]
+        reasons.append(
+            f"{len(weak)} of {len(per_image)} images hold fewer than {minimum} observations "
+            f"of mapped points (first: {first.image_name}); their poses rest on the odometry")
+    if counts.get("view_graph_components", 1) > 1:
+        reasons.append(f"the images form {counts['view_graph_components']} groups that share "
+                       "no matches; only the odometry holds them together")
+    for reason in reasons:
+        logger.warning("mapping: %s", reason)
+    quality["suspicious"] += reasons
+
+
 class MappingStage(Stage):
     name = "mapping"
     version = 3  # 2: summary.json keeps the joint extrinsic covariance when asked; 3: stereo
-    # principal-point self-calibration and the odometry's scale estimated
+    # principal-point self-calibration, the odometry's scale estimated, visual-support checks
     sections = {"mapping": MappingStageOptions, "refinement": IterativeMappingOptions,
                 "bundle_adjustment": BundleOptions}
     reads = ("mapping", "refinement", "bundle_adjustment", "frame_type")
