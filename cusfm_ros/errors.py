@@ -42,6 +42,10 @@ class BagError(CusfmError):
     """A bag cannot be read or lacks what the mapper needs (topics, calibration, poses)."""
 
 
+class BadFrameError(BagError):
+    """One image message cannot be decoded (corrupt or truncated data)."""
+
+
 class EvaluationError(CusfmError):
     """Trajectories cannot be compared (no associated stamps, degenerate alignment)."""
 

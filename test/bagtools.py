@@ -30,7 +30,7 @@ def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = 
               tf_static: bool = True, odom: bool = True, tf: bool = False,
               odom_stamp_swap: bool = False, nan_odom_at: int | None = None,
               info_size: tuple[int, int] | None = None, rate_hz: float = 10.0,
-              camera_offset_ns: int = 0) -> dict:
+              camera_offset_ns: int = 0, corrupt_image_at: int | None = None) -> dict:
     """Write a bag; returns the truth used (poses at odometry stamps, image stamps, rig)."""
     the_rig = make_rig(rig, "indoor", CAMERA)
     odom_factor = 2
@@ -71,6 +71,8 @@ def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = 
                 rgb = rng.integers(0, 255, (CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
                 if compressed:
                     image = m.compressed_image_msg(rgb, image_stamp, camera.frame_id)
+                    if corrupt_image_at == len(image_stamps) - 1:  # a JPEG cut short
+                        image.data = image.data[:40].copy()
                     bag.write(f"/{camera.name}/image_raw/compressed", m.COMPRESSED_IMAGE,
                               stamp + 2000, image)
                 else:

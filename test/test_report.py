@@ -84,3 +84,32 @@ def test_a_real_browser_loads_every_figure(mapped, tmp_path):
     image = cv2.imread(str(screenshot))
     assert image is not None and image.shape[:2] == (1800, 1400)
     assert np.std(image) > 10  # a drawn page, not a blank one
+
+
+def test_refinement_that_raises_the_ate_is_flagged(tmp_path):
+    """With ground truth at hand, a refined path farther from it than the input is listed
+    as suspicious (on the page and in read_run_data)."""
+    import json
+
+    from cusfm_ros.core.trajectory import Trajectory
+    from cusfm_ros.io.tum import write_tum
+    from cusfm_ros.report.run_data import read_run_data
+
+    stamps = np.arange(20, dtype=np.int64) * 100_000_000
+    truth = np.tile(np.eye(4), (20, 1, 1))
+    truth[:, 0, 3] = np.arange(20) * 1.0
+    truth[:, 1, 3] = 0.05 * np.arange(20) ** 2  # a curve: SE(3) alignment is defined
+    worse = truth.copy()
+    worse[:, 2, 3] = np.sin(np.arange(20)) * 0.5  # wiggles the truth has not
+    better = truth.copy()
+    better[:, 2, 3] = np.sin(np.arange(20)) * 0.1
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "report.json").write_text(json.dumps({"status": "complete", "stages": {}}))
+    write_tum(tmp_path / "gt.tum", Trajectory(stamps, truth))
+    for initial, refined, flagged in ((better, worse, True), (worse, better, False)):
+        write_tum(run / "initial_poses.tum", Trajectory(stamps, initial))
+        write_tum(run / "poses.tum", Trajectory(stamps, refined))
+        data = read_run_data(run, tmp_path / "gt.tum")
+        raised = [s for s in data.suspicious if "refinement raised the ATE" in s]
+        assert bool(raised) == flagged, data.suspicious

@@ -72,3 +72,30 @@ def test_failed_write_leaves_previous_file(tmp_path, loop_trajectory, monkeypatc
     with pytest.raises(RuntimeError):
         tum.write_tum(path, loop_trajectory)
     assert path.read_bytes() == before
+
+
+@pytest.mark.parametrize("content, message", [
+    (bytes(range(256)) * 4, "not a text file"),
+    (b"1700000000000000000 0 0 0 0 0 0 1\n", "stamp 1700000000000000000 s is out of range"),
+])
+def test_evaluate_names_unreadable_trajectories_in_one_line(tmp_path, capsys, content,
+                                                             message):
+    from cusfm_ros.cli.main import main
+
+    good = tmp_path / "good.tum"
+    good.write_text("0 0 0 0 0 0 0 1\n0.1 1 0 0 0 0 0 1\n")
+    bad = tmp_path / "bad.tum"
+    bad.write_bytes(content)
+    assert main(["evaluate", str(bad), str(good)]) == 1
+    err = capsys.readouterr().err
+    assert message in err and str(bad) in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_evaluate_max_diff_must_be_finite(tmp_path, capsys):
+    from cusfm_ros.cli.main import main
+
+    good = tmp_path / "good.tum"
+    good.write_text("0 0 0 0 0 0 0 1\n0.1 1 0 0 0 0 0 1\n")
+    assert main(["evaluate", str(good), str(good), "--max-diff", "inf"]) == 1
+    err = capsys.readouterr().err
+    assert "max_diff_s must be finite" in err and "Traceback" not in err, err

@@ -23,6 +23,9 @@ def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--extrinsics", default=None, metavar="FILE",
                         help="extrinsics YAML overriding /tf_static")
     parser.add_argument("--sync-tolerance-ms", type=float, default=None)
+    parser.add_argument("--skip-bad-frames", action=argparse.BooleanOptionalAction,
+                        default=None, help="leave out images that cannot be decoded (counted "
+                                           "in the report) instead of stopping")
     parser.add_argument("--min-translation-m", type=float, default=None)
     parser.add_argument("--min-rotation-deg", type=float, default=None)
 

@@ -28,8 +28,9 @@ class AteOptions:
     def __post_init__(self) -> None:
         if self.align not in ALIGNMENTS:
             raise ConfigError(f"unknown alignment {self.align!r} (use {', '.join(ALIGNMENTS)})")
-        if not self.max_diff_s >= 0:
-            raise ConfigError(f"max_diff_s must be >= 0, got {self.max_diff_s}")
+        if not 0 <= self.max_diff_s < 1e6:
+            raise ConfigError(f"max_diff_s must be finite and >= 0 (seconds), got "
+                              f"{self.max_diff_s}")
 
 
 @dataclass

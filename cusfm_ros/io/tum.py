@@ -43,34 +43,41 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
     stamps: list[int] = []
     rows: list[list[float]] = []
     previous_line = 0
-    with open(path, encoding="utf-8") as handle:
-        for line_number, raw in enumerate(handle, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            fields = line.replace(",", " ").split()
-            where = f"line {line_number}"
-            if len(fields) != 8:
-                raise FormatError(path, where, f"expected 8 fields 'stamp tx ty tz qx qy qz qw', "
-                                  f"found {len(fields)}")
-            try:
-                stamp = parse_stamp_ns(fields[0])
-                values = [float(v) for v in fields[1:]]
-            except (InvalidOperation, ValueError):
-                raise FormatError(path, where, f"non-numeric field in {line!r}") from None
-            if not np.all(np.isfinite(values)):
-                raise FormatError(path, where, "pose contains NaN or inf")
-            norm = float(np.linalg.norm(values[3:]))
-            if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
-                raise FormatError(path, where, f"quaternion norm is {norm:.6g}, not 1",
-                                  "write unit quaternions qx qy qz qw")
-            if stamps and stamp <= stamps[-1]:
-                kind = "duplicate" if stamp == stamps[-1] else "decreasing"
-                raise FormatError(path, where, f"{kind} stamp {fields[0]} after line "
-                                  f"{previous_line}", "stamps must be strictly increasing")
-            stamps.append(stamp)
-            rows.append(values)
-            previous_line = line_number
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise FormatError(path, None, "not a text file", "a TUM file has lines 'stamp tx ty "
+                          "tz qx qy qz qw'") from None
+    for line_number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        where = f"line {line_number}"
+        if len(fields) != 8:
+            raise FormatError(path, where, f"expected 8 fields 'stamp tx ty tz qx qy qz qw', "
+                              f"found {len(fields)}")
+        try:
+            stamp = parse_stamp_ns(fields[0])
+            values = [float(v) for v in fields[1:]]
+        except (InvalidOperation, ValueError):
+            raise FormatError(path, where, f"non-numeric field in {line!r}") from None
+        if not np.all(np.isfinite(values)):
+            raise FormatError(path, where, "pose contains NaN or inf")
+        if not -2**62 < stamp < 2**62:
+            raise FormatError(path, where, f"stamp {fields[0]} s is out of range",
+                              "TUM stamps are seconds (nanoseconds written as seconds?)")
+        norm = float(np.linalg.norm(values[3:]))
+        if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
+            raise FormatError(path, where, f"quaternion norm is {norm:.6g}, not 1",
+                              "write unit quaternions qx qy qz qw")
+        if stamps and stamp <= stamps[-1]:
+            kind = "duplicate" if stamp == stamps[-1] else "decreasing"
+            raise FormatError(path, where, f"{kind} stamp {fields[0]} after line "
+                              f"{previous_line}", "stamps must be strictly increasing")
+        stamps.append(stamp)
+        rows.append(values)
+        previous_line = line_number
     if not rows:
         raise FormatError(path, None, "contains no poses")
     data = np.asarray(rows)

@@ -73,6 +73,7 @@ SWITCHES: dict[str, tuple[str, ...]] = {
     "odom_topic": ("keyframes.odom_topic",), "world_frame": ("keyframes.world_frame",),
     "base_frame": ("keyframes.base_frame",), "extrinsics": ("keyframes.extrinsics_file",),
     "sync_tolerance_ms": ("keyframes.sync_tolerance_ms",),
+    "skip_bad_frames": ("keyframes.skip_bad_frames",),
     "min_translation_m": ("keyframes.min_translation_m",),
     "min_rotation_deg": ("keyframes.min_rotation_deg",),
     "features": ("features.extractor.name",), "matcher": ("features.matcher.name",),

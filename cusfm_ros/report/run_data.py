@@ -112,4 +112,10 @@ def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None) -
                 delta.rotation_angle_deg()))
     mapping = data.report.get("stages", {}).get("mapping", {})
     data.suspicious = list(mapping.get("suspicious") or data.report.get("suspicious") or [])
+    if "input" in data.ate and "refined" in data.ate and \
+            data.ate["refined"].rmse > data.ate["input"].rmse:
+        data.suspicious.append(
+            f"refinement raised the ATE against the ground truth: input "
+            f"{data.ate['input'].rmse:.3f} m -> refined {data.ate['refined'].rmse:.3f} m "
+            "(SE(3))")
     return data

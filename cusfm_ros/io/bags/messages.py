@@ -14,7 +14,7 @@ import numpy as np
 
 from cusfm_ros.core.cameras import CameraBase, FisheyeCamera, OpenCVCamera, PinholeCamera
 from cusfm_ros.core.geometry import QUAT_NORM_TOLERANCE, Rigid3
-from cusfm_ros.errors import BagError, CalibrationError
+from cusfm_ros.errors import BadFrameError, BagError, CalibrationError
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -230,8 +230,8 @@ def decode_image(message: Any, msgtype: str, topic: str) -> np.ndarray:
         data = np.asarray(message.data, dtype=np.uint8)
         image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         if image is None:
-            raise BagError(f"{topic}: cannot decode CompressedImage (format "
-                           f"{message.format!r}); only jpeg and png are supported")
+            raise BadFrameError(f"{topic}: cannot decode CompressedImage ({len(data)} bytes, "
+                                f"format {message.format!r}): corrupt or not jpeg/png")
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4
                                  else cv2.COLOR_BGR2RGB)
@@ -249,8 +249,8 @@ def decode_image(message: Any, msgtype: str, topic: str) -> np.ndarray:
                        "image_proc")
     row_bytes = width * channels * np.dtype(dtype).itemsize
     if step < row_bytes or len(data) < step * height:
-        raise BagError(f"{topic}: image data is truncated ({len(data)} bytes for "
-                       f"{width}x{height} {encoding}, step {step})")
+        raise BadFrameError(f"{topic}: image data is truncated ({len(data)} bytes for "
+                            f"{width}x{height} {encoding}, step {step})")
     rows = data[:step * height].reshape(height, step)[:, :row_bytes]
     big_endian = bool(message.is_bigendian)
     pixel_dtype = np.dtype(dtype).newbyteorder(">" if big_endian else "<")

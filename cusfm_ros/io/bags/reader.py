@@ -60,7 +60,8 @@ class BagReader:
             self._reader = AnyReader([self.path], default_typestore=typestore())
             self._reader.open()
         except Exception as exc:  # rosbags raises many types for broken files
-            raise BagError(f"{self.path}: cannot open the bag ({type(exc).__name__}: {exc}); "
+            detail = " ".join(str(exc).split())[:200]
+            raise BagError(f"{self.path}: cannot open the bag ({type(exc).__name__}: {detail}); "
                            "it is corrupt, truncated or of an unknown storage format "
                            "(for rosbag2, `ros2 bag reindex` may repair it)") from None
         return self

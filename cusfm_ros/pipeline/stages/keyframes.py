@@ -34,7 +34,7 @@ from cusfm_ros.core.keyframes import Keyframe, KeyframeSet
 from cusfm_ros.core.odometry.visual import VisualOdometry, VisualOdometryOptions
 from cusfm_ros.core.rig import Rig, RigCamera
 from cusfm_ros.core.trajectory import Trajectory
-from cusfm_ros.errors import BagError, ConfigError, CusfmError, GeometryError
+from cusfm_ros.errors import BadFrameError, BagError, ConfigError, CusfmError, GeometryError
 from cusfm_ros.io.atomic import atomic_directory
 from cusfm_ros.io.bags import messages as m
 from cusfm_ros.io.bags.layout import BagLayout, CameraStream, discover_layout
@@ -73,8 +73,17 @@ class KeyframeOptions:
     min_rotation_deg: float = 5.0
     visual_odometry: VisualOdometryOptions = field(default_factory=VisualOdometryOptions)
     """The initializer for bags without a pose source."""
+    skip_bad_frames: bool = False
+    """Leave out images that cannot be decoded (counted and named in the report) instead of
+    stopping at the first."""
+    max_bad_frame_fraction: float = 0.05
+    """With ``skip_bad_frames``: more bad images than this fraction of the selected ones
+    fail the stage."""
 
     def __post_init__(self) -> None:
+        if not 0 <= self.max_bad_frame_fraction <= 1:
+            raise ConfigError(f"keyframes.max_bad_frame_fraction must be in [0, 1], got "
+                              f"{self.max_bad_frame_fraction}")
         if self.pose_source not in ("auto", "odom", "tf", "vo"):
             raise ConfigError(f"pose_source must be auto, odom, tf or vo, got "
                               f"{self.pose_source!r}")
@@ -91,12 +100,15 @@ class KeyframeResult:
     num_keyframe_samples: int
     seconds: float
     pose_source: str = ""
+    bad_frames: list[dict] = field(default_factory=list)
+    """Images left out as undecodable (``skip_bad_frames``): topic, stamp_ns, reason."""
 
     def counts(self) -> dict:
         return {"images_in_bag": self.num_images_in_bag, "rig_samples": self.num_samples,
                 "keyframe_samples": self.num_keyframe_samples,
                 "keyframes": len(self.keyframe_set.keyframes),
-                "cameras": len(self.keyframe_set.rig), "pose_source": self.pose_source}
+                "cameras": len(self.keyframe_set.rig), "pose_source": self.pose_source,
+                "bad_frames_skipped": len(self.bad_frames), "bad_frames": self.bad_frames[:20]}
 
 
 def extract_keyframes(bag_path: str | os.PathLike, out_dir: str | os.PathLike,
@@ -153,11 +165,12 @@ class KeyframeExtractor:
                         self.options.min_translation_m, self.options.min_rotation_deg,
                         pose_source)
             with atomic_directory(out) as tmp:
+                bad_frames: list[dict] = []
                 keyframe_set = self._write(bag, layout, rig, samples, sample_poses, chosen, tmp,
-                                           world_from_base)
+                                           world_from_base, bad_frames)
                 seconds = time.perf_counter() - started
                 result = KeyframeResult(out, keyframe_set, scan["num_images"], len(samples),
-                                        int(len(chosen)), seconds, pose_source)
+                                        int(len(chosen)), seconds, pose_source, bad_frames)
                 (tmp / "stage.json").write_text(json.dumps(
                     {"bag": str(bag_path), "pose_source": pose_source,
                      "counts": result.counts()}, indent=2))
@@ -358,8 +371,8 @@ class KeyframeExtractor:
                 index = lookup.get((stream.name, bag.header_stamp_ns(message)))
                 if index is None:
                     continue
-                image = m.decode_image(bag.deserialize(message), message.msgtype,
-                                       message.topic)
+                stamp = bag.header_stamp_ns(message)
+                image = self._decode(bag, message, stamp, None)  # the odometry needs them all
                 pending.setdefault(index, {})[stream.name] = extractor.extract(image)
                 while len(pending.get(expected, {})) == len(wanted):
                     yield pending.pop(expected)
@@ -404,8 +417,27 @@ class KeyframeExtractor:
         return inside, poses
 
     # ------------------------------------------------------------------------------ pass 2
+    def _decode(self, bag: BagReader, message, stamp: int, bad_frames: list[dict] | None):
+        """The message's image, or None for an undecodable one when skipping bad frames."""
+        try:
+            return m.decode_image(bag.deserialize(message), message.msgtype, message.topic)
+        except BadFrameError as exc:
+            where = f"{exc} (stamp {stamp} ns)"
+            if not self.options.skip_bad_frames:
+                raise BadFrameError(f"{where}; pass --skip-bad-frames to leave such images "
+                                    "out") from None
+            if bad_frames is None:
+                raise BadFrameError(f"{where}; the visual-odometry initializer needs every "
+                                    "frame it tracks: remove the frame from the bag or give "
+                                    "the bag an odometry topic") from None
+            logger.warning("keyframes: skipping a bad frame: %s", where)
+            bad_frames.append({"topic": message.topic, "stamp_ns": int(stamp),
+                               "reason": str(exc)})
+            return None
+
     def _write(self, bag: BagReader, layout: BagLayout, rig: Rig, samples, sample_poses,
-               chosen: np.ndarray, tmp: Path, world_from_base: Trajectory) -> KeyframeSet:
+               chosen: np.ndarray, tmp: Path, world_from_base: Trajectory,
+               bad_frames: list[dict]) -> KeyframeSet:
         wanted: dict[tuple[str, int], tuple[int, str]] = {}
         for sample_index in chosen:
             for name, stamp in samples[sample_index].image_stamps_ns.items():
@@ -423,7 +455,9 @@ class KeyframeExtractor:
             if key not in wanted:
                 continue
             sample_index, name = wanted.pop(key)
-            image = m.decode_image(bag.deserialize(message), message.msgtype, message.topic)
+            image = self._decode(bag, message, stamp, bad_frames)
+            if image is None:
+                continue
             camera = rig[name].camera
             if image.shape[1] != camera.width or image.shape[0] != camera.height:
                 raise BagError(f"{message.topic}: image is {image.shape[1]}x{image.shape[0]} "
@@ -447,6 +481,16 @@ class KeyframeExtractor:
         if wanted:
             raise BagError(f"{len(wanted)} selected images vanished between the two passes "
                            "over the bag; is it being written to?")
+        selected_images = len(keyframes) + len(bad_frames)
+        if bad_frames and len(bad_frames) > self.options.max_bad_frame_fraction * \
+                selected_images:
+            raise BagError(f"{len(bad_frames)} of {selected_images} selected images cannot be "
+                           f"decoded (first: {bad_frames[0]['topic']} at stamp "
+                           f"{bad_frames[0]['stamp_ns']} ns), more than "
+                           f"keyframes.max_bad_frame_fraction = "
+                           f"{self.options.max_bad_frame_fraction}; the bag is damaged")
+        if not keyframes:
+            raise BagError("no selected image could be decoded")
         order = sorted(range(len(keyframes)), key=lambda i: (keyframes[i].stamp_ns,
                                                              keyframes[i].camera_name))
         keyframes = [replace(keyframes[old], keyframe_id=str(new))
