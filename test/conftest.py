@@ -45,3 +45,14 @@ def models_ready():
         return ensure_models()
     except Exception as exc:  # no torch and no cache: the learned-feature tests cannot run
         pytest.skip(f"ONNX models unavailable: {exc}")
+
+
+@pytest.fixture(scope="session")
+def small_stereo_bag(tmp_path_factory):
+    """A short indoor stereo drive (24 frames, 320x240): seconds per stage with
+    ``bagtools.FAST_MAP_ARGS``."""
+    from cusfm_ros.sim.generator import SimulationOptions, Simulator
+
+    return Simulator(SimulationOptions(
+        scene="indoor", rig="stereo", frames=24, image_width=320, image_height=240, seed=5)
+    ).generate(tmp_path_factory.mktemp("small_stereo") / "sim")

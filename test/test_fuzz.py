@@ -8,7 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
-from bagtools import write_bag
+from bagtools import FAST_MAP_ARGS, write_bag
 
 from cusfm_ros.cli.main import main
 
@@ -86,36 +86,23 @@ def test_damaged_metadata_ends_cleanly(clean_bag, tmp_path, capsys):
         _check(bag, tmp_path / f"run{index}", capsys, f"metadata {text!r}")
 
 
-KILL_ARGS = ["--min-translation-m", "0.3", "--features", "sift", "--max-keypoints", "512",
-             "--skip-vocabulary", "--skip-loops", "--skip-map"]
-
-
-@pytest.fixture(scope="module")
-def sim_bag(tmp_path_factory):
-    from cusfm_ros.sim.generator import SimulationOptions, Simulator
-
-    return Simulator(SimulationOptions(
-        scene="indoor", rig="stereo", frames=24, image_width=320, image_height=240, seed=5)
-    ).generate(tmp_path_factory.mktemp("kill") / "sim")
-
-
 @pytest.mark.parametrize("stage", ["features", "matching", "mapping"])
-def test_kill_9_in_a_stage_then_rerun_gives_the_uninterrupted_result(sim_bag, tmp_path,
-                                                                      stage):
+def test_kill_9_in_a_stage_then_rerun_gives_the_uninterrupted_result(small_stereo_bag,
+                                                                      tmp_path, stage):
     import os
     import signal
     import subprocess
     import sys
     import time
 
-    command = [sys.executable, "-m", "cusfm_ros.cli.main", "map", str(sim_bag / "bag")]
+    command = [sys.executable, "-m", "cusfm_ros.cli.main", "map", str(small_stereo_bag / "bag")]
     reference = tmp_path / "reference"
-    subprocess.run(command + ["--out", str(reference)] + KILL_ARGS, check=True,
+    subprocess.run(command + ["--out", str(reference)] + FAST_MAP_ARGS, check=True,
                    capture_output=True)
     run = tmp_path / "run"
     record = run / "stages" / f"{stage}.json"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    process = subprocess.Popen(command + ["--out", str(run)] + KILL_ARGS, env=env,
+    process = subprocess.Popen(command + ["--out", str(run)] + FAST_MAP_ARGS, env=env,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
     killed = False
@@ -132,7 +119,7 @@ def test_kill_9_in_a_stage_then_rerun_gives_the_uninterrupted_result(sim_bag, tm
     process.wait(timeout=30)
     assert killed, f"the {stage} stage ended before it could be killed"
     assert not (run / "COMPLETE").exists() and not (run / "poses.tum").exists()
-    rerun = subprocess.run(command + ["--out", str(run)] + KILL_ARGS, capture_output=True,
+    rerun = subprocess.run(command + ["--out", str(run)] + FAST_MAP_ARGS, capture_output=True,
                            text=True)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     assert not list(run.rglob("*.tmp")) and (run / "COMPLETE").is_file()

@@ -4,29 +4,18 @@ temporary files of a killed run cleaned at the next start."""
 
 import json
 
-import pytest
+from bagtools import FAST_MAP_ARGS as FAST
 
 from cusfm_ros.cli.main import main
-from cusfm_ros.sim.generator import SimulationOptions, Simulator
-
-FAST = ["--min-translation-m", "0.3", "--features", "sift", "--max-keypoints", "512",
-        "--skip-vocabulary", "--skip-loops", "--skip-map"]
-
-
-@pytest.fixture(scope="module")
-def small_bag(tmp_path_factory):
-    return Simulator(SimulationOptions(
-        scene="indoor", rig="stereo", frames=20, image_width=320, image_height=240, seed=7)
-    ).generate(tmp_path_factory.mktemp("status") / "sim")
 
 
 def _report(run):
     return json.loads((run / "report.json").read_text())
 
 
-def test_status_marker_and_a_failed_rerun(small_bag, tmp_path, capsys):
+def test_status_marker_and_a_failed_rerun(small_stereo_bag, tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["map", str(small_bag / "bag"), "--out", str(run)] + FAST
+    args = ["map", str(small_stereo_bag / "bag"), "--out", str(run)] + FAST
     assert main(args) == 0
     report = _report(run)
     assert report["status"] == "complete" and "error" not in report
@@ -86,10 +75,10 @@ def test_random_images_cannot_make_a_map(tmp_path, capsys, models_ready):
     assert _report(run)["status"] == "failed" and not (run / "poses.tum").exists()
 
 
-def test_temporary_files_of_a_killed_run_are_removed_at_the_next_start(small_bag, tmp_path,
+def test_temporary_files_of_a_killed_run_are_removed_at_the_next_start(small_stereo_bag, tmp_path,
                                                                        caplog):
     run = tmp_path / "run"
-    args = ["map", str(small_bag / "bag"), "--out", str(run)] + FAST
+    args = ["map", str(small_stereo_bag / "bag"), "--out", str(run)] + FAST
     assert main(args + ["--steps", "keyframes"]) == 0
     # what atomic writes leave behind when the process dies between create and rename
     leftovers = [run / ".keyframes.k2j3.tmp", run / "features" / ".features.h5.x81.tmp",
