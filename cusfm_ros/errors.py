@@ -8,8 +8,18 @@ exits with status 1. Anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 
+def one_line(text: str) -> str:
+    """Whitespace folded: a library's multi-line text (a message definition, a YAML excerpt)
+    quoted in an error stays on one line."""
+    return " ".join(text.split())
+
+
 class CusfmError(Exception):
-    """Base class of all user-facing errors."""
+    """Base class of all user-facing errors; printed on one line wherever it is printed (the
+    CLI, the ROS nodes, the mapper worker)."""
+
+    def __str__(self) -> str:
+        return one_line(super().__str__())
 
 
 class ConfigError(CusfmError):

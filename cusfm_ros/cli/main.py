@@ -44,13 +44,6 @@ def configure_logging(verbose: bool, quiet: bool = False) -> None:
                         datefmt="%H:%M:%S", stream=sys.stderr)
 
 
-def one_line(message: str, limit: int = 600) -> str:
-    """An error as one line: a library's multi-line text (a message definition, a YAML
-    excerpt) folded, and cut past ``limit`` characters."""
-    text = " ".join(message.split())
-    return text if len(text) <= limit else text[:limit - 5] + " ..."
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -58,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.run(args) or 0)
     except CusfmError as exc:
-        print(f"cusfm {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
+        print(f"cusfm {args.command}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # Ctrl-C: every atomic write in progress was dropped
         print(f"cusfm {args.command}: interrupted; nothing half-written was left, rerun the "

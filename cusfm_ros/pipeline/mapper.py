@@ -7,6 +7,7 @@ runner's (``pipeline/runner.py``). Stages: see ``pipeline/registry.py``.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from cusfm_ros.pipeline.options import MapperOptions
@@ -38,8 +39,6 @@ class Mapper:
 
 def _failed_here(run_dir: Path) -> bool:
     """This run wrote ``status: failed`` and an earlier run drew a page."""
-    import json
-
     try:
         status = json.loads((run_dir / "report.json").read_text()).get("status")
     except (OSError, ValueError):

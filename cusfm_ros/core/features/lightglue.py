@@ -9,7 +9,6 @@ import numpy as np
 
 from cusfm_ros.core.features.onnx_session import make_session
 from cusfm_ros.core.features.types import FeatureError, Features, Matches
-
 from cusfm_ros.errors import ConfigError
 
 

@@ -99,6 +99,15 @@ class RelativeFactors:
     def odometry_mask(self) -> np.ndarray:
         return np.ones(len(self), bool) if self.odometry is None else self.odometry
 
+    def odometry_translations(self, world_from_node: np.ndarray
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For the odometry factors: the node each ends at, the measured translation and the
+        translation between ``world_from_node``'s poses, (K,), (K, 3), (K, 3)."""
+        mask = self.odometry_mask()
+        a, b = self.a[mask], self.b[mask]
+        between = invert_matrices(world_from_node[a]) @ world_from_node[b]
+        return b, self.a_from_b[mask, :3, 3], between[:, :3, 3]
+
     def rescaled(self, scale: float) -> RelativeFactors:
         """The odometry factors with their translations multiplied by ``scale``."""
         a_from_b = self.a_from_b.copy()

@@ -264,15 +264,11 @@ class IterativeMapper:
     def _odometry_scale(poses: BundleProblem) -> float:
         """Least-squares factor from the odometry factors' translations to the current
         poses' relative translations."""
-        rel = poses.relative
-        mask = rel.odometry_mask()
-        w = poses.world_from_node
-        refined = np.linalg.inv(w[rel.a[mask]]) @ w[rel.b[mask]]
-        measured = rel.a_from_b[mask, :3, 3]
+        _, measured, refined = poses.relative.odometry_translations(poses.world_from_node)
         norm = float(np.sum(measured * measured))
         if norm < 1e-12:
             return 1.0
-        return float(np.sum(refined[:, :3, 3] * measured)) / norm
+        return float(np.sum(refined * measured)) / norm
 
     def _self_calibrate(self, data: MappingInput, poses: BundleProblem, active: np.ndarray,
                         corrections: dict[int, tuple[np.ndarray, float]], log: list[dict]

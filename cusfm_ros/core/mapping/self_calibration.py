@@ -122,8 +122,7 @@ def estimate_offsets(poses: BundleProblem, obs_image: np.ndarray, obs_xy: np.nda
     for camera in sorted(set(sensor_of_obs.tolist()) - {0}):
         mine = active & (sensor_of_obs == camera)
         others = active & (sensor_of_obs != camera)
-        shared = ((np.bincount(track_of_obs[mine], minlength=num_tracks) > 0)
-                  & (np.bincount(track_of_obs[others], minlength=num_tracks) >= 2))
+        shared = _shared(track_of_obs, mine, others, num_tracks, min_others=2)
         use = others & shared[track_of_obs]
         if shared.sum() < options.min_points:
             continue
@@ -155,7 +154,6 @@ def estimate_offsets(poses: BundleProblem, obs_image: np.ndarray, obs_xy: np.nda
         n = int(ok.sum())
         if n < options.min_points:
             continue
-        # rows: x residuals then y residuals; unknowns: offset x, offset y, beta
         # rows: x residuals then y residuals; unknowns: offset x, offset y, focal ratio, beta
         design = np.zeros((2 * n, 4))
         design[:n, 0] = 1.0
@@ -186,14 +184,17 @@ def shared_tracks(image_sensor: np.ndarray, obs_image: np.ndarray, offsets: np.n
     sensor_of_obs = image_sensor[obs_image]
     num_tracks = len(offsets) - 1
     track_of_obs = np.repeat(np.arange(num_tracks), np.diff(offsets))
-    best = 0
-    for camera in set(sensor_of_obs[active].tolist()) - {0}:
-        mine = np.bincount(track_of_obs[active & (sensor_of_obs == camera)],
-                           minlength=num_tracks)
-        others = np.bincount(track_of_obs[active & (sensor_of_obs != camera)],
-                             minlength=num_tracks)
-        best = max(best, int(np.sum((mine > 0) & (others > 0))))
-    return best
+    return max((int(_shared(track_of_obs, active & (sensor_of_obs == camera),
+                             active & (sensor_of_obs != camera), num_tracks, 1).sum())
+                for camera in set(sensor_of_obs[active].tolist()) - {0}), default=0)
+
+
+def _shared(track_of_obs: np.ndarray, mine: np.ndarray, others: np.ndarray, num_tracks: int,
+            min_others: int) -> np.ndarray:
+    """(T,) tracks with an observation in ``mine`` and at least ``min_others`` in
+    ``others`` (observation masks)."""
+    return ((np.bincount(track_of_obs[mine], minlength=num_tracks) > 0)
+            & (np.bincount(track_of_obs[others], minlength=num_tracks) >= min_others))
 
 
 def apply_offsets(obs_xy: np.ndarray, obs_per_px: np.ndarray, sensor_of_obs: np.ndarray,

@@ -236,12 +236,8 @@ def odometry_jumps(structure: PoseStructure, world_from_rig: np.ndarray, scale: 
     template = getattr(structure, "template", None)
     if structure.frame_type != "rig" or template is None or not len(template.relative):
         return []
-    rel = template.relative
-    mask = rel.odometry_mask()
-    a, b = rel.a[mask], rel.b[mask]
-    measured = rel.a_from_b[mask, :3, 3] * scale
-    refined = (invert_matrices(world_from_rig[a]) @ world_from_rig[b])[:, :3, 3]
-    change = np.linalg.norm(refined - measured, axis=1)
+    b, measured, refined = template.relative.odometry_translations(world_from_rig)
+    change = np.linalg.norm(refined - scale * measured, axis=1)
     return [{"stamp_ns": int(structure.sample_stamps_ns[b[k]]), "change_m": float(change[k])}
             for k in np.nonzero(change > threshold_m)[0]]
 

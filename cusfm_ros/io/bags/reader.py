@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cusfm_ros.errors import BagError
+from cusfm_ros.errors import BagError, one_line
 from cusfm_ros.io.bags.messages import header_stamp_from_raw, typestore
 
 logger = logging.getLogger(__name__)
@@ -60,7 +60,7 @@ class BagReader:
             self._reader = AnyReader([self.path], default_typestore=typestore())
             self._reader.open()
         except Exception as exc:  # rosbags raises many types for broken files
-            detail = " ".join(str(exc).split())[:200]
+            detail = one_line(str(exc))[:200]  # keep the fix below in view
             raise BagError(f"{self.path}: cannot open the bag ({type(exc).__name__}: {detail}); "
                            "it is corrupt, truncated or of an unknown storage format "
                            "(for rosbag2, `ros2 bag reindex` may repair it)") from None
