@@ -46,23 +46,30 @@ def test_status_marker_and_a_failed_rerun(small_stereo_bag, tmp_path, capsys):
     assert (run / "poses.tum").is_file() and (run / "sparse").is_dir()
 
 
+def _kitti_folder(src, images) -> None:
+    """A KITTI-layout stereo sequence of the given left (= right) images, moving 1 m per frame
+    along the optical axis."""
+    import cv2
+
+    for folder in ("image_0", "image_1"):
+        (src / folder).mkdir(parents=True)
+        for i, image in enumerate(images):
+            cv2.imwrite(str(src / folder / f"{i:06d}.png"), image)
+    (src / "calib.txt").write_text("P0: 500 0 160 0 0 500 120 0 0 0 1 0\n"
+                                   "P1: 500 0 160 -250 0 500 120 0 0 0 1 0\n")
+    (src / "poses.txt").write_text("".join(f"1 0 0 0 0 1 0 0 0 0 1 {i}\n"
+                                           for i in range(len(images))))
+
+
 def test_random_images_cannot_make_a_map(tmp_path, capsys, models_ready):
     """Independent noise images with moving odometry: the matcher finds a few chance matches;
     the mapper refuses to call that a map."""
-    import cv2
     import numpy as np
 
     rng = np.random.default_rng(0)
-    src = tmp_path / "noise"
-    for folder in ("image_0", "image_1"):
-        (src / folder).mkdir(parents=True)
-        for i in range(12):
-            cv2.imwrite(str(src / folder / f"{i:06d}.png"),
-                        rng.integers(0, 256, (240, 320), dtype=np.uint8))
-    (src / "calib.txt").write_text("P0: 500 0 160 0 0 500 120 0 0 0 1 0\n"
-                                   "P1: 500 0 160 -250 0 500 120 0 0 0 1 0\n")
-    (src / "poses.txt").write_text("".join(f"1 0 0 0 0 1 0 0 0 0 1 {i}\n" for i in range(12)))
-    assert main(["convert", "kitti", str(src), str(tmp_path / "bag"),
+    _kitti_folder(tmp_path / "noise",
+                  [rng.integers(0, 256, (240, 320), dtype=np.uint8) for _ in range(12)])
+    assert main(["convert", "kitti", str(tmp_path / "noise"), str(tmp_path / "bag"),
                  "--odom-drift", "0.1,0.02"]) == 0
     run = tmp_path / "run"
     capsys.readouterr()
@@ -72,6 +79,31 @@ def test_random_images_cannot_make_a_map(tmp_path, capsys, models_ready):
     assert code == 1 and len(err.strip().splitlines()) == 1, err
     # ALIKED + LightGlue match a few hundred noise blobs; about 50 points survive
     assert "the images cannot support a map: the median image holds" in err, err
+    assert _report(run)["status"] == "failed" and not (run / "poses.tum").exists()
+
+
+def test_identical_images_while_the_odometry_moves_cannot_make_a_map(tmp_path, capsys):
+    """One textured image repeated while the odometry drives 11 m: every match is perfect,
+    bundle adjustment fits points at infinity (0.004 px before this check, exit 0) — without
+    parallax they say nothing about the motion, and the run fails saying so."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    image = np.full((240, 320), 90, np.uint8)
+    for _ in range(800):
+        center = tuple(int(v) for v in rng.integers(0, [320, 240]))
+        cv2.circle(image, center, int(rng.integers(3, 15)), int(rng.integers(0, 256)), -1)
+    _kitti_folder(tmp_path / "frozen", [cv2.GaussianBlur(image, (3, 3), 0)] * 12)
+    assert main(["convert", "kitti", str(tmp_path / "frozen"), str(tmp_path / "bag"),
+                 "--odom-drift", "0.1,0.02"]) == 0
+    run = tmp_path / "run"
+    capsys.readouterr()
+    assert main(["map", str(tmp_path / "bag"), "--out", str(run)] + FAST) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert ("the images show no parallax: the median image holds 0 observations of points "
+            "seen under 0.5 deg or more") in err, err
     assert _report(run)["status"] == "failed" and not (run / "poses.tum").exists()
 
 

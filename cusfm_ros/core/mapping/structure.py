@@ -296,6 +296,39 @@ def mapping_quality(structure: PoseStructure, world_from_rig: np.ndarray,
     return quality
 
 
+def inlier_problem(observations: Observations, result: MappingResult):
+    """The bundle problem of the refined map's inlier observations (refined poses and
+    points)."""
+    data = observations.data
+    obs = result.inliers
+    track_of_obs = np.repeat(np.arange(len(data.offsets) - 1), np.diff(data.offsets))
+    return replace(data.template, world_from_node=result.world_from_node,
+                   node_from_sensor=result.node_from_sensor, points=result.points,
+                   obs_image=data.obs_image[obs], obs_point=track_of_obs[obs],
+                   obs_xy=data.obs_xy[obs],
+                   obs_next_node=None if data.obs_next_node is None else data.obs_next_node[obs],
+                   obs_alpha=None if data.obs_alpha is None else data.obs_alpha[obs])
+
+
+def observation_parallax_deg(problem) -> np.ndarray:
+    """(M,) the parallax of each observation's point: twice the widest angle between one of
+    its viewing rays and their mean direction (for two rays, exactly the angle between them;
+    vectorized over all points, where the exact widest pair would be quadratic per track)."""
+    cam_from_world = problem.observation_poses()
+    rotation, translation = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+    centers = -np.einsum("nji,nj->ni", rotation, translation)
+    rays = problem.points[problem.obs_point] - centers
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    count = len(problem.points)
+    mean = np.stack([np.bincount(problem.obs_point, rays[:, k], minlength=count)
+                     for k in range(3)], axis=1)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    angle = np.arccos(np.clip(np.einsum("ni,ni->n", rays, mean[problem.obs_point]), -1, 1))
+    widest = np.zeros(count)
+    np.maximum.at(widest, problem.obs_point, angle)
+    return np.degrees(2 * widest[problem.obs_point])
+
+
 def pixel_errors(keyframes: KeyframeSet, structure: PoseStructure, observations: Observations,
                  result: MappingResult) -> tuple[dict, np.ndarray]:
     """Reprojection error statistics (pixels, through each camera's own model) of the inlier
@@ -303,14 +336,7 @@ def pixel_errors(keyframes: KeyframeSet, structure: PoseStructure, observations:
     data = observations.data
     obs = result.inliers
     track_of_obs = np.repeat(np.arange(len(data.offsets) - 1), np.diff(data.offsets))
-    problem = replace(data.template, world_from_node=result.world_from_node,
-                      node_from_sensor=result.node_from_sensor, points=result.points,
-                      obs_image=data.obs_image[obs], obs_point=track_of_obs[obs],
-                      obs_xy=data.obs_xy[obs],
-                      obs_next_node=None if data.obs_next_node is None
-                      else data.obs_next_node[obs],
-                      obs_alpha=None if data.obs_alpha is None else data.obs_alpha[obs])
-    cam_from_world = problem.observation_poses()
+    cam_from_world = inlier_problem(observations, result).observation_poses()
     in_cam = np.einsum("nij,nj->ni", cam_from_world[:, :3, :3],
                        result.points[track_of_obs[obs]]) + cam_from_world[:, :3, 3]
     errors = np.full(int(obs.sum()), np.nan)

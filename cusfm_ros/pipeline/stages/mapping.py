@@ -23,7 +23,8 @@ from cusfm_ros.core.mapping.bundle_adjustment import BundleOptions, covariance_i
 from cusfm_ros.core.mapping.iterative import IterativeMapper, IterativeMappingOptions
 from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.core.mapping.structure import (build_observations, build_pose_structure,
-                                              mapping_quality, pixel_errors,
+                                              inlier_problem, mapping_quality,
+                                              observation_parallax_deg, pixel_errors,
                                               refined_world_from_rig)
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import ConfigError, CusfmError, MappingError
@@ -64,6 +65,10 @@ class MappingStageOptions:
     min_observations_per_image: int = 15
     """Images with fewer observations of mapped points are reported as suspicious; when the
     median image has fewer, the images cannot support a map and the stage fails."""
+    min_parallax_deg: float = 0.5
+    """Only points seen under at least this parallax count towards
+    ``min_observations_per_image``: identical or frozen images make points at infinity that
+    fit any motion and say nothing about it."""
     odometry_jump_sigmas: float = 5.0
     """An odometry step (at the odometry's estimated scale) off the refined motion by more
     than this many ``bundle_adjustment.relative_sigma_m`` is reported, with its stamp."""
@@ -83,6 +88,8 @@ class MappingStageOptions:
             raise ConfigError("max_odometry_scale_change must be > 0")
         if self.min_observations_per_image < 0:
             raise ConfigError("mapping.min_observations_per_image must be >= 0")
+        if not 0 <= self.min_parallax_deg < 90:
+            raise ConfigError("mapping.min_parallax_deg must be in [0, 90)")
         if not self.odometry_jump_sigmas > 0:
             raise ConfigError("mapping.odometry_jump_sigmas must be > 0")
 
@@ -154,8 +161,8 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
     counts.update({"points": len(points), "observations": points.num_observations,
                    "mean_reprojection_error_px": reprojection["mean"],
                    "rounds": len(result.rounds)})
-    _check_visual_support(structure, data.obs_image[result.inliers], counts,
-                          options.min_observations_per_image, quality)
+    _check_visual_support(structure, inlier_problem(observations, result), counts,
+                          options, quality)
     quality["odometry_scale"] = result.odometry_scale
     names = keyframes.rig.names
     if result.camera_corrections:
@@ -181,27 +188,41 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
                          points, {**counts, **quality}, summary, covariance)
 
 
-def _check_visual_support(structure, inlier_image: np.ndarray, counts: dict, minimum: int,
+def _check_visual_support(structure, problem, counts: dict, options: MappingStageOptions,
                           quality: dict) -> None:
-    """Fail when the median image holds fewer than ``minimum`` observations of mapped points
-    (random or featureless images, cameras that do not see what the odometry says); report
-    weak images and a view graph in pieces as suspicious."""
-    per_image = np.bincount(inlier_image, minlength=len(structure.images))
+    """Fail when the median image holds fewer than ``min_observations_per_image``
+    observations of mapped points (random or featureless images, cameras that do not see what
+    the odometry says), or of points seen under ``min_parallax_deg`` (identical or frozen
+    images); report weak images and a view graph in pieces as suspicious."""
+    minimum = options.min_observations_per_image
+    parallax = observation_parallax_deg(problem)
+    quality["median_parallax_deg"] = float(np.median(parallax)) if len(parallax) else 0.0
+    images = len(structure.images)
+    median = float(np.median(np.bincount(problem.obs_image, minlength=images)))
+    per_image = np.bincount(problem.obs_image[parallax >= options.min_parallax_deg],
+                            minlength=images)
     weak = np.nonzero(per_image < minimum)[0]
-    median = float(np.median(per_image)) if len(per_image) else 0.0
-    quality["median_observations_per_image"] = median
+    quality["median_observations_per_image"] = float(np.median(per_image))
     if median < minimum:
         raise MappingError(
             f"the images cannot support a map: the median image holds {median:.0f} "
-            f"observations of mapped points (need {minimum}; {len(weak)} of {len(per_image)} "
+            f"observations of mapped points (need {minimum}; {len(weak)} of {images} "
             "images below): too little texture or overlap, or images that do not show the "
             "motion the poses say (mapping.min_observations_per_image sets the bar)")
+    if np.median(per_image) < minimum:
+        raise MappingError(
+            f"the images show no parallax: the median image holds {np.median(per_image):.0f} "
+            f"observations of points seen under {options.min_parallax_deg:g} deg or more "
+            f"(need {minimum}; median parallax {quality['median_parallax_deg']:.2f} deg): "
+            "identical or frozen images, or a camera that does not move as the odometry says "
+            "(mapping.min_parallax_deg sets the bar)")
     reasons = []
     if len(weak):
         first = structure.images[weak[0]]
         reasons.append(
             f"{len(weak)} of {len(per_image)} images hold fewer than {minimum} observations "
-            f"of mapped points (first: {first.image_name}); their poses rest on the odometry")
+            f"of mapped points seen under {options.min_parallax_deg:g} deg or more (first: "
+            f"{first.image_name}); their poses rest on the odometry")
     if counts.get("view_graph_components", 1) > 1:
         reasons.append(f"the images form {counts['view_graph_components']} groups that share "
                        "no matches; only the odometry holds them together")
@@ -212,8 +233,9 @@ def _check_visual_support(structure, inlier_image: np.ndarray, counts: dict, min
 
 class MappingStage(Stage):
     name = "mapping"
-    version = 3  # 2: summary.json keeps the joint extrinsic covariance when asked; 3: stereo
-    # principal-point self-calibration, the odometry's scale estimated, visual-support checks
+    version = 4  # 2: summary.json keeps the joint extrinsic covariance when asked; 3: stereo
+    # principal-point self-calibration, the odometry's scale estimated, visual-support checks; 4:
+    # points without parallax do not count as support
     sections = {"mapping": MappingStageOptions, "refinement": IterativeMappingOptions,
                 "bundle_adjustment": BundleOptions}
     reads = ("mapping", "refinement", "bundle_adjustment", "frame_type")
