@@ -28,13 +28,33 @@ def trajectory(count: int, step_m: float = 0.6) -> np.ndarray:
     return poses
 
 
+class _Damaging:
+    """A bag writer that lets ``damage(msgtype, message, index)`` change each message."""
+
+    def __init__(self, writer: BagWriter, damage) -> None:
+        self.writer, self.damage, self.written = writer, damage, {}
+
+    def add_topic(self, *args, **kwargs) -> None:
+        self.writer.add_topic(*args, **kwargs)
+
+    def write(self, topic: str, msgtype: str, stamp_ns: int, message) -> None:
+        index = self.written.get(msgtype, 0)
+        self.written[msgtype] = index + 1
+        if self.damage is not None:
+            self.damage(msgtype, message, index)
+        self.writer.write(topic, msgtype, stamp_ns, message)
+
+
 def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = "stereo",
               encoding: str = "rgb8", compressed: bool = False, info: bool = True,
               tf_static: bool = True, odom: bool = True, tf: bool = False,
               odom_stamp_swap: bool = False, nan_odom_at: int | None = None,
               info_size: tuple[int, int] | None = None, rate_hz: float = 10.0,
-              camera_offset_ns: int = 0, corrupt_image_at: int | None = None) -> dict:
-    """Write a bag; returns the truth used (poses at odometry stamps, image stamps, rig)."""
+              camera_offset_ns: int = 0, corrupt_image_at: int | None = None,
+              damage=None) -> dict:
+    """Write a bag; returns the truth used (poses at odometry stamps, image stamps, rig).
+    ``damage(msgtype, message, index)``, where given, may change each message (``index``
+    counts the messages of that type) before it is written."""
     the_rig = make_rig(rig, "indoor", CAMERA)
     odom_factor = 2
     odom_count = (frames - 1) * odom_factor + 1
@@ -48,7 +68,8 @@ def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = 
     info_camera = CAMERA if info_size is None else PinholeCamera(*info_size, fx=32, fy=32,
                                                                  cx=31.5, cy=23.5)
     image_stamps = []
-    with BagWriter(path, storage) as bag:
+    with BagWriter(path, storage) as writer:
+        bag = _Damaging(writer, damage)
         if tf_static:
             bag.add_topic("/tf_static", m.TF_MESSAGE, latched=True)
             bag.write("/tf_static", m.TF_MESSAGE, START_NS, m.tf_message(
@@ -87,3 +108,18 @@ def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = 
                               m.camera_info_msg(info_camera, image_stamp, camera.frame_id))
     return {"odom_stamps": odom_stamps, "poses": poses, "rig": the_rig,
             "image_stamps": np.array(image_stamps)}
+
+
+def copy_bag(source: Path, target: Path, damage) -> None:
+    """Copy a bag message by message through ``damage(msgtype, message, index)`` (as in
+    ``write_bag``); /tf_static stays latched."""
+    from cusfm_ros.io.bags.reader import BagReader
+
+    with BagReader(source) as reader, BagWriter(target, "mcap") as writer:
+        bag = _Damaging(writer, damage)
+        topics = reader.topics()
+        for name, info in topics.items():
+            bag.add_topic(name, info.msgtype, latched=name == "/tf_static")
+        for message in reader.messages(list(topics)):
+            bag.write(message.topic, message.msgtype, message.bag_stamp_ns,
+                      reader.deserialize(message))

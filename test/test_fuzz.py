@@ -1,7 +1,8 @@
 """Fuzz: seeded mutations of a small generated bag — truncated at many offsets, bytes flipped
-in its chunks, its metadata damaged — through `cusfm map --steps keyframes`. Whatever the
-damage: exit 0 with a complete run, or exit 1 with one line and no traceback; never a
-result that looks complete from a failed run."""
+in its chunks, its metadata damaged, a field of every message type broken — through
+`cusfm map --steps keyframes`, and kill -9 in each stage of a full run. Whatever the damage:
+exit 0 with a complete run, or exit 1 with one line and no traceback; never a result that
+looks complete from a failed run; a rerun after a kill reaches the uninterrupted result."""
 
 import json
 import shutil
@@ -86,19 +87,112 @@ def test_damaged_metadata_ends_cleanly(clean_bag, tmp_path, capsys):
         _check(bag, tmp_path / f"run{index}", capsys, f"metadata {text!r}")
 
 
-@pytest.mark.parametrize("stage", ["features", "matching", "mapping"])
+def _set(path, value):
+    """A damage that sets ``message.<path>`` (dotted) to ``value``."""
+    def damage(message):
+        *parents, name = path.split(".")
+        target = message
+        for parent in parents:
+            target = getattr(target, parent)
+        setattr(target, name, value(getattr(target, name)) if callable(value) else value)
+    return damage
+
+
+NAN, INF = float("nan"), float("inf")
+# every message type the reader takes, each field it uses broken in the ways a driver breaks it
+BROKEN_FIELDS = {
+    "sensor_msgs/msg/CompressedImage": {
+        "empty data": _set("data", np.zeros(0, np.uint8)),
+        "random bytes": _set("data", lambda d: np.random.default_rng(SEED).integers(
+            0, 256, len(d), dtype=np.uint8)),
+        "png header only": _set("data", np.frombuffer(b"\x89PNG\r\n\x1a\n", np.uint8)),
+        "format tiff": _set("format", "tiff"),
+        "zero stamp": _set("header.stamp.sec", 0)},
+    "sensor_msgs/msg/Image": {
+        "data cut in half": _set("data", lambda d: d[:len(d) // 2].copy()),
+        "zero width": _set("width", 0),
+        "height doubled": _set("height", lambda h: 2 * h),
+        "step too small": _set("step", 1),
+        "unknown encoding": _set("encoding", "yuv_bogus"),
+        "16-bit encoding on 8-bit data": _set("encoding", "mono16")},
+    "sensor_msgs/msg/CameraInfo": {
+        "zero K": _set("k", np.zeros(9)),
+        "NaN focal": _set("k", lambda k: np.r_[NAN, k[1:]]),
+        "negative focal": _set("k", lambda k: np.r_[-k[0], k[1:]]),
+        "zero size": _set("width", 0),
+        "unknown distortion model": _set("distortion_model", "banana"),
+        "distortion too short": _set("d", np.zeros(2)),
+        "inf distortion": _set("d", lambda d: np.r_[INF, d[1:]])},
+    "nav_msgs/msg/Odometry": {
+        "NaN position": _set("pose.pose.position.y", NAN),
+        "inf position": _set("pose.pose.position.z", INF),
+        "zero quaternion": _set("pose.pose.orientation.w", 0.0),
+        "stamp from the past": _set("header.stamp.sec", 1),
+        "other child frame": _set("child_frame_id", "imu_link")},
+    "tf2_msgs/msg/TFMessage": {
+        "NaN translation": _set("transforms", lambda t: [_nan_translation(t[0])] + t[1:]),
+        "no transforms": _set("transforms", []),
+        "camera frame renamed": _set("transforms", lambda t: [_renamed(t[0])] + t[1:])},
+}
+
+
+def _nan_translation(transform):
+    transform.transform.translation.x = NAN
+    return transform
+
+
+def _renamed(transform):
+    transform.child_frame_id = "nowhere"
+    return transform
+
+
+def _cases():
+    """(message type, damage name, which messages: 'one' seeded index or 'all')."""
+    rng = np.random.default_rng(SEED)
+    return [(msgtype, name, "all" if msgtype == "tf2_msgs/msg/TFMessage" or rng.random() < 0.5
+             else int(rng.integers(0, 4)))  # /tf_static has one message
+            for msgtype, damages in BROKEN_FIELDS.items() for name in damages]
+
+
+@pytest.mark.parametrize("msgtype,name,which", _cases())
+def test_every_broken_message_type_ends_cleanly(tmp_path, capsys, msgtype, name, which):
+    damage = BROKEN_FIELDS[msgtype][name]
+
+    def hook(kind, message, index):
+        if kind == msgtype and (which == "all" or index == which):
+            damage(message)
+
+    compressed = msgtype == "sensor_msgs/msg/CompressedImage"
+    write_bag(tmp_path / "bag", frames=8, compressed=compressed, damage=hook)
+    _check(tmp_path / "bag", tmp_path / "run", capsys, f"{msgtype} {name} ({which})")
+
+
+def _map_command(bag):
+    import sys
+    return [sys.executable, "-m", "cusfm_ros.cli.main", "map", str(bag / "bag")]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(small_stereo_bag, tmp_path_factory):
+    """The run the killed ones must reach."""
+    import subprocess
+
+    reference = tmp_path_factory.mktemp("uninterrupted") / "run"
+    subprocess.run(_map_command(small_stereo_bag) + ["--out", str(reference)] + FAST_MAP_ARGS,
+                   check=True, capture_output=True)
+    return reference
+
+
+@pytest.mark.parametrize("stage", ["keyframes", "features", "matching", "mapping", "export"])
 def test_kill_9_in_a_stage_then_rerun_gives_the_uninterrupted_result(small_stereo_bag,
-                                                                      tmp_path, stage):
+                                                                      uninterrupted, tmp_path,
+                                                                      stage):
     import os
     import signal
     import subprocess
-    import sys
     import time
 
-    command = [sys.executable, "-m", "cusfm_ros.cli.main", "map", str(small_stereo_bag / "bag")]
-    reference = tmp_path / "reference"
-    subprocess.run(command + ["--out", str(reference)] + FAST_MAP_ARGS, check=True,
-                   capture_output=True)
+    command = _map_command(small_stereo_bag)
     run = tmp_path / "run"
     record = run / "stages" / f"{stage}.json"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -109,18 +203,25 @@ def test_kill_9_in_a_stage_then_rerun_gives_the_uninterrupted_result(small_stere
     while process.poll() is None and time.monotonic() < deadline:
         try:
             if json.loads(record.read_text())["status"] == "running":
-                time.sleep(0.05)  # into the stage's work, not its first line
+                time.sleep(0.02)  # into the stage's work, not its first line
                 process.send_signal(signal.SIGKILL)
                 killed = True
                 break
         except (OSError, ValueError, KeyError):
             pass
-        time.sleep(0.005)
+        time.sleep(0.002)
     process.wait(timeout=30)
     assert killed, f"the {stage} stage ended before it could be killed"
-    assert not (run / "COMPLETE").exists() and not (run / "poses.tum").exists()
+    assert not (run / "COMPLETE").exists()
+    if (run / "report.json").exists():
+        assert json.loads((run / "report.json").read_text())["status"] == "running"
+    if stage != "export":  # export publishes poses.tum with the rest, as a unit
+        assert not (run / "poses.tum").exists()
     rerun = subprocess.run(command + ["--out", str(run)] + FAST_MAP_ARGS, capture_output=True,
                            text=True)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     assert not list(run.rglob("*.tmp")) and (run / "COMPLETE").is_file()
-    assert (run / "poses.tum").read_bytes() == (reference / "poses.tum").read_bytes()
+    for name in ("poses.tum", "points.ply", "extrinsics.yaml"):
+        assert (run / name).read_bytes() == (uninterrupted / name).read_bytes(), name
+    assert sorted(p.name for p in (run / "sparse").iterdir()) == sorted(
+        p.name for p in (uninterrupted / "sparse").iterdir())

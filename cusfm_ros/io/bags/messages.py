@@ -92,12 +92,13 @@ def pose_msg(pose: Rigid3) -> Any:
                orientation=_quaternion(pose))
 
 
-def _rigid(translation: Any, rotation: Any, what: str) -> Rigid3:
+def _rigid(translation: Any, rotation: Any, what: str,
+           fix: str = "filter it out, or choose another pose source") -> Rigid3:
     t = np.array([translation.x, translation.y, translation.z], dtype=np.float64)
     q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=np.float64)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         raise BagError(f"{what} contains NaN or inf; the recording is corrupt at that message "
-                       "(filter it out, or choose another pose source)")
+                       f"({fix})")
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
         raise BagError(f"{what} has a non-unit quaternion (norm {norm:.4g}); the publisher "
@@ -105,8 +106,13 @@ def _rigid(translation: Any, rotation: Any, what: str) -> Rigid3:
     return Rigid3.from_quat_xyzw(q / norm, t)
 
 
-def rigid_from_transform(transform: Any, what: str = "transform") -> Rigid3:
-    return _rigid(transform.translation, transform.rotation, what)
+def rigid_from_transform(transform: Any, what: str = "transform", static: bool = False
+                         ) -> Rigid3:
+    """``static``: a /tf_static transform (an extrinsic, whose fix is another source of
+    extrinsics, not another pose source)."""
+    return _rigid(transform.translation, transform.rotation, what,
+                  "record the static transforms again or pass --extrinsics FILE" if static
+                  else "filter it out, or choose another pose source")
 
 
 def rigid_from_pose(pose: Any, what: str = "pose") -> Rigid3:
@@ -169,7 +175,8 @@ def camera_from_camera_info(info: Any, topic: str) -> CameraBase:
     d = np.asarray(info.d if hasattr(info, "d") else info.D, dtype=np.float64)
     if width <= 0 or height <= 0 or not np.any(k):
         raise CalibrationError(f"{topic}: CameraInfo is uncalibrated (size {width}x{height}, "
-                               "K all zero); calibrate the camera or pass --intrinsics")
+                               "K all zero); calibrate the camera (ROS camera_calibration) "
+                               "and publish its CameraInfo with the images")
     if int(info.binning_x) > 1 or int(info.binning_y) > 1 or int(info.roi.width) not in (
             0, width):
         raise CalibrationError(f"{topic}: binned or ROI-cropped CameraInfo is not supported; "
@@ -228,8 +235,13 @@ def decode_image(message: Any, msgtype: str, topic: str) -> np.ndarray:
     """Image or CompressedImage -> (H, W) mono or (H, W, 3) RGB array (uint8 or uint16)."""
     if msgtype == COMPRESSED_IMAGE:
         data = np.asarray(message.data, dtype=np.uint8)
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-        if image is None:
+        if not len(data):
+            raise BadFrameError(f"{topic}: empty CompressedImage (0 bytes of data)")
+        try:
+            image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        except cv2.error:  # OpenCV asserts on some malformed headers instead of returning None
+            image = None
+        if image is None or image.size == 0:
             raise BadFrameError(f"{topic}: cannot decode CompressedImage ({len(data)} bytes, "
                                 f"format {message.format!r}): corrupt or not jpeg/png")
         if image.ndim == 3:
@@ -247,6 +259,9 @@ def decode_image(message: Any, msgtype: str, topic: str) -> np.ndarray:
         raise BagError(f"{topic}: unsupported image encoding {encoding!r} (supported: "
                        f"{', '.join(SUPPORTED_ENCODINGS)}); convert the topic first, e.g. with "
                        "image_proc")
+    if height <= 0 or width <= 0:
+        raise BadFrameError(f"{topic}: image of size {width}x{height} (the message's width "
+                            "and height must be positive)")
     row_bytes = width * channels * np.dtype(dtype).itemsize
     if step < row_bytes or len(data) < step * height:
         raise BadFrameError(f"{topic}: image data is truncated ({len(data)} bytes for "

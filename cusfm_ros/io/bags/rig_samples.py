@@ -66,7 +66,8 @@ def scan_cameras(bag: BagReader, image_topics: tuple[str, ...] = (),
         else:
             for transform in bag.deserialize(message).transforms:
                 tree.add_static(transform.header.frame_id, transform.child_frame_id,
-                                m.rigid_from_transform(transform.transform, message.topic))
+                                m.rigid_from_transform(transform.transform, message.topic,
+                                                       static=True))
     for stream in layout.cameras:
         if stream.name not in cameras:
             raise BagError(f"{stream.info_topic}: no CameraInfo message in the bag")

@@ -69,7 +69,8 @@ def summarize(path: str | os.PathLike) -> BagSummary:
             if message.topic == layout.tf_static_topic:
                 for t in bag.deserialize(message).transforms:
                     tree.add_static(t.header.frame_id, t.child_frame_id,
-                                    m.rigid_from_transform(t.transform, "/tf_static"))
+                                    m.rigid_from_transform(t.transform, "/tf_static",
+                                                           static=True))
                 continue
             if message.topic not in pending:
                 if not pending and layout.tf_static_topic is None:

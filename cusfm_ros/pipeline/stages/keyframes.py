@@ -153,8 +153,10 @@ class KeyframeExtractor:
             layout = self._layout(bag)
             scan = self._scan(bag, layout)
             rig = self._rig(layout, scan)
+            bad_frames: list[dict] = []
             if scan["use_vo"]:
-                world_from_base, pose_source = self._visual_odometry(bag, layout, rig, scan)
+                world_from_base, pose_source = self._visual_odometry(bag, layout, rig, scan,
+                                                                     bad_frames)
             else:
                 world_from_base, pose_source = self._poses(scan)
             samples, sample_poses = self._samples(scan, layout, world_from_base)
@@ -165,7 +167,6 @@ class KeyframeExtractor:
                         self.options.min_translation_m, self.options.min_rotation_deg,
                         pose_source)
             with atomic_directory(out) as tmp:
-                bad_frames: list[dict] = []
                 keyframe_set = self._write(bag, layout, rig, samples, sample_poses, chosen, tmp,
                                            world_from_base, bad_frames)
                 seconds = time.perf_counter() - started
@@ -255,7 +256,8 @@ class KeyframeExtractor:
                 for transform in tf.transforms:
                     pose = m.rigid_from_transform(transform.transform,
                                                   f"{topic} {transform.header.frame_id} -> "
-                                                  f"{transform.child_frame_id}")
+                                                  f"{transform.child_frame_id}",
+                                                  static=topic == layout.tf_static_topic)
                     if topic == layout.tf_static_topic:
                         tree.add_static(transform.header.frame_id, transform.child_frame_id,
                                         pose)
@@ -333,10 +335,11 @@ class KeyframeExtractor:
         base = o.base_frame or "base_link"
         return scan["tree"].trajectory(world, base), f"/tf {world} -> {base}"
 
-    def _visual_odometry(self, bag: BagReader, layout: BagLayout, rig: Rig, scan: dict
-                         ) -> tuple[Trajectory, str]:
+    def _visual_odometry(self, bag: BagReader, layout: BagLayout, rig: Rig, scan: dict,
+                         bad_frames: list[dict]) -> tuple[Trajectory, str]:
         """world_from_base_link at the rig samples (at most ``max_rate_hz``) from the images:
-        one streaming pass, frames handed to the odometry in time order."""
+        one streaming pass, frames handed to the odometry in time order (with
+        ``skip_bad_frames``, a first pass leaves out the samples with an undecodable image)."""
         from cusfm_ros.core.features.knn import KnnMatcher
         from cusfm_ros.core.features.sift import SiftExtractor, SiftOptions
 
@@ -352,11 +355,13 @@ class KeyframeExtractor:
             if last is None or sample.stamp_ns - last >= 1e9 / o.max_rate_hz - 1e6:
                 chosen.append(sample)
                 last = sample.stamp_ns
+        streams = {c.image_topic: c for c in layout.cameras if c.name in wanted}
+        if self.options.skip_bad_frames:
+            chosen = self._without_bad_frames(bag, streams, chosen, bad_frames)
         if len(chosen) < 2:
             raise BagError(f"{bag.path}: visual odometry needs at least two frames of "
                            f"{', '.join(wanted)}; found {len(chosen)}")
         extractor = SiftExtractor(SiftOptions(max_keypoints=o.max_keypoints))
-        streams = {c.image_topic: c for c in layout.cameras if c.name in wanted}
         lookup = {(name, stamp): index for index, sample in enumerate(chosen)
                   for name, stamp in sample.image_stamps_ns.items() if name in wanted}
         logger.info("keyframes: visual odometry (%s) over %d frames of %s",
@@ -372,7 +377,7 @@ class KeyframeExtractor:
                 if index is None:
                     continue
                 stamp = bag.header_stamp_ns(message)
-                image = self._decode(bag, message, stamp, None)  # the odometry needs them all
+                image = self._decode(bag, message, stamp, None)  # bad ones are left out
                 pending.setdefault(index, {})[stream.name] = extractor.extract(image)
                 while len(pending.get(expected, {})) == len(wanted):
                     yield pending.pop(expected)
@@ -417,6 +422,24 @@ class KeyframeExtractor:
         return inside, poses
 
     # ------------------------------------------------------------------------------ pass 2
+    def _without_bad_frames(self, bag: BagReader, streams: dict, chosen: list,
+                            bad_frames: list[dict]) -> list:
+        """The samples of ``chosen`` whose images of ``streams`` all decode (the others are
+        recorded in ``bad_frames``): the odometry tracks frame to frame and cannot step over a
+        hole it finds midway."""
+        index_of = {(name, stamp): i for i, sample in enumerate(chosen)
+                    for name, stamp in sample.image_stamps_ns.items()}
+        bad = set()
+        for message in bag.messages(streams):
+            stamp = bag.header_stamp_ns(message)
+            index = index_of.get((streams[message.topic].name, stamp))
+            if index is not None and self._decode(bag, message, stamp, bad_frames) is None:
+                bad.add(index)
+        if bad:
+            logger.warning("keyframes: visual odometry leaves out %d frames with an "
+                           "undecodable image", len(bad))
+        return [sample for i, sample in enumerate(chosen) if i not in bad]
+
     def _decode(self, bag: BagReader, message, stamp: int, bad_frames: list[dict] | None):
         """The message's image, or None for an undecodable one when skipping bad frames."""
         try:
@@ -430,9 +453,11 @@ class KeyframeExtractor:
                 raise BadFrameError(f"{where}; the visual-odometry initializer needs every "
                                     "frame it tracks: remove the frame from the bag or give "
                                     "the bag an odometry topic") from None
-            logger.warning("keyframes: skipping a bad frame: %s", where)
-            bad_frames.append({"topic": message.topic, "stamp_ns": int(stamp),
-                               "reason": str(exc)})
+            if not any(b["topic"] == message.topic and b["stamp_ns"] == stamp
+                       for b in bad_frames):  # the odometry's pass may have met it first
+                logger.warning("keyframes: skipping a bad frame: %s", where)
+                bad_frames.append({"topic": message.topic, "stamp_ns": int(stamp),
+                                   "reason": str(exc)})
             return None
 
     def _write(self, bag: BagReader, layout: BagLayout, rig: Rig, samples, sample_poses,

@@ -38,9 +38,10 @@ class VocabularyStageOptions:
         if self.method not in ("kmeans", "birch"):
             raise ConfigError(f"vocabulary method must be kmeans or birch, got {self.method!r}")
         if self.branching < 2 or self.depth < 1 or self.max_descriptors < 1:
-            raise ConfigError("vocabulary: branching >= 2, depth >= 1, max_descriptors >= 1")
+            raise ConfigError(f"needs branching >= 2, depth >= 1 and max_descriptors >= 1, got "
+                              f"{self.branching}, {self.depth}, {self.max_descriptors}")
         if self.birch_threshold <= 0:
-            raise ConfigError("vocabulary: birch_threshold must be > 0")
+            raise ConfigError(f"birch_threshold must be > 0, got {self.birch_threshold}")
 
 
 def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOptions,
