@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from cusfm_ros.core.mapping.bal_gtsam import GtsamBalAdjuster
-from cusfm_ros.core.mapping.bal_model import BalProblem, BalProjection
+from cusfm_ros.core.mapping.bal_model import BalProjection
 from cusfm_ros.core.mapping.schur_adjuster import SchurAdjuster, SchurAdjusterOptions
 from cusfm_ros.errors import CusfmError
 from cusfm_ros.io.bal_file import read_bal, write_bal

@@ -28,6 +28,7 @@ from cusfm_ros.errors import ConfigError, MappingError
 
 logger = logging.getLogger(__name__)
 ROBUST = ("huber", "cauchy", "none")
+SOLVERS = ("auto", "gtsam", "torch")
 
 
 @dataclass(frozen=True)
@@ -56,8 +57,15 @@ class BundleOptions:
     the final adjustment (how well the data pins each camera down; calibration reports)."""
     max_iterations: int = 30
     relative_tolerance: float = 1e-6
+    solver: str = "auto"
+    """``gtsam`` (CPU), ``torch`` (Levenberg–Marquardt + Schur complement on the run's
+    device) or ``auto``: torch on a CUDA device, gtsam otherwise. Problems torch does not
+    model (extrinsic refinement, rolling shutter, covariances) go to gtsam."""
 
     def __post_init__(self) -> None:
+        if self.solver not in SOLVERS:
+            raise ConfigError(f"bundle_adjustment.solver must be one of {', '.join(SOLVERS)}, "
+                              f"got {self.solver!r}")
         if self.robust not in ROBUST:
             raise ConfigError(f"robust loss must be one of {', '.join(ROBUST)}, "
                               f"got {self.robust!r}")

@@ -16,7 +16,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from cusfm_ros.core.mapping.bundle_adjustment import (BundleAdjuster, BundleOptions,
-                                                      BundleProblem, RelativeFactors)
+                                                      BundleProblem, BundleResult,
+                                                      RelativeFactors)
 from cusfm_ros.core.mapping.self_calibration import (SelfCalibrationOptions, apply_offsets,
                                                      estimate_offsets, shared_tracks)
 from cusfm_ros.core.mapping.triangulation import TriangulationOptions, triangulate_tracks
@@ -96,11 +97,47 @@ class MappingResult:
     """The last self-calibration update was below ``settled_px`` (None: none ran)."""
 
 
+class _Adjusters:
+    """The bundle adjuster for each problem: ``bundle_adjustment.solver`` on ``device``, gtsam
+    where torch does not model the problem."""
+
+    def __init__(self, bundle: BundleOptions, device: str) -> None:
+        self.gtsam = BundleAdjuster(bundle)
+        self.torch = None
+        self.device = "cpu"
+        if bundle.solver == "torch" or (bundle.solver == "auto" and device != "cpu"):
+            import torch
+
+            cuda = torch.cuda.is_available()
+            if device == "cuda" and not cuda:
+                raise ConfigError("--device cuda: torch sees no CUDA GPU")
+            self.device = "cuda" if device in ("cuda", "auto") and cuda else "cpu"
+            if bundle.solver == "torch" or self.device == "cuda":
+                from cusfm_ros.core.mapping.torch_bundle import TorchBundleAdjuster
+
+                self.torch = TorchBundleAdjuster(bundle, self.device)
+        self.told = False
+
+    def solve(self, problem: BundleProblem, robust: bool, covariance: bool) -> BundleResult:
+        if self.torch is not None:
+            from cusfm_ros.core.mapping.torch_bundle import supports
+
+            if supports(problem, covariance):
+                return self.torch.solve(problem, robust=robust)
+            if not self.told:
+                logger.info("mapping: extrinsic refinement, rolling shutter or covariances: "
+                            "bundle adjustment by gtsam")
+                self.told = True
+        return self.gtsam.solve(problem, robust=robust, covariance=covariance)
+
+
 class IterativeMapper:
     def __init__(self, options: IterativeMappingOptions = IterativeMappingOptions(),
-                 bundle: BundleOptions = BundleOptions()) -> None:
+                 bundle: BundleOptions = BundleOptions(), device: str = "cpu") -> None:
+        """``device``: the run's (auto | cpu | cuda), for ``bundle_adjustment.solver``."""
         self.options = options
         self.bundle = bundle
+        self.device = device
 
     def _problem(self, data: MappingInput, poses: BundleProblem, points: np.ndarray,
                  active: np.ndarray) -> tuple[BundleProblem, np.ndarray]:
@@ -186,7 +223,7 @@ class IterativeMapper:
                 f"tracks (need {o.min_points}); check that the pairs overlap, the pose prior "
                 f"and the motion (pure rotation gives no parallax)")
         rounds = []
-        adjuster = BundleAdjuster(self.bundle)
+        adjuster = _Adjusters(self.bundle, self.device)
         stage, round_ = 1, 0
         calibration = o.self_calibration
         # with extrinsic refinement a rotation of a camera and its principal point trade off:

@@ -32,8 +32,54 @@ logger = logging.getLogger(__name__)
 class ProjectionModel(Protocol):
     def project(self, points_in_cam: torch.Tensor, camera: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(M, 3) points in their observation's camera frame and (M,) camera index →
-        (M, 2) image coordinates and (M, 2, 3) their derivative."""
+        """(M, 3) every observation's point in the frame of its pose variable and (M,)
+        that pose's index → (M, 2) image coordinates and (M, 2, 3) their derivative."""
+
+
+class PoseFactors(Protocol):
+    """Factors on the pose variables alone (priors, relative poses), whitened."""
+
+    def linearize(self, rotation: torch.Tensor, translation: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor,
+                             torch.Tensor | None]:
+        """(K,) first pose, (K,) second pose or None (unary), (K, D) weighted residuals,
+        (K, D, 6) and (K, D, 6) or None: their Jacobians in the adjuster's parameters
+        (rotation vector on the left, translation added)."""
+
+    def cost(self, rotation: torch.Tensor, translation: torch.Tensor) -> float:
+        """Σ ρ over the factors (½ ‖r‖² without a robust loss)."""
+
+
+@dataclass(frozen=True)
+class RobustLoss:
+    """ρ of a whitened residual norm e: ``huber`` (e²/2 up to ``threshold``, then linear),
+    ``cauchy`` or ``none``; applied by reweighting each linearization, as gtsam does."""
+
+    kind: str = "none"
+    threshold: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("none", "huber", "cauchy") or not self.threshold > 0:
+            raise ConfigError(f"robust loss: none, huber or cauchy with threshold > 0, got "
+                              f"{self.kind!r}, {self.threshold}")
+
+    def rho(self, squared: torch.Tensor) -> torch.Tensor:
+        k = self.threshold
+        if self.kind == "huber":
+            norm = squared.sqrt()
+            return torch.where(norm <= k, 0.5 * squared, k * norm - 0.5 * k * k)
+        if self.kind == "cauchy":
+            return 0.5 * k * k * torch.log1p(squared / (k * k))
+        return 0.5 * squared
+
+    def weight(self, squared: torch.Tensor) -> torch.Tensor:
+        k = self.threshold
+        if self.kind == "huber":
+            norm = squared.sqrt()
+            return torch.where(norm <= k, torch.ones_like(norm), k / norm.clamp_min(1e-300))
+        if self.kind == "cauchy":
+            return 1 / (1 + squared / (k * k))
+        return torch.ones_like(squared)
 
 
 @dataclass(frozen=True)
@@ -122,10 +168,13 @@ class SchurAdjuster:
     def solve(self, model: ProjectionModel, cam_from_world_rotation: np.ndarray,
               cam_from_world_translation: np.ndarray, points3d_in_world: np.ndarray,
               obs_camera: np.ndarray, obs_point: np.ndarray, obs_uv: np.ndarray,
-              fixed_cameras: np.ndarray | None = None) -> SchurAdjusterResult:
-        """Minimize ½ Σ ‖model(R_c X_p + t_c) - uv‖² over the free cameras and all points.
-        ``fixed_cameras``: (C,) bool, cameras held (none by default: the gauge is left to
-        the damping, as Ceres and gtsam do without priors)."""
+              fixed_cameras: np.ndarray | None = None, obs_sigma: np.ndarray | None = None,
+              robust: RobustLoss = RobustLoss(), pose_factors: tuple = ()
+              ) -> SchurAdjusterResult:
+        """Minimize Σ ρ(‖model(R_c X_p + t_c) - uv‖ / σ) + the pose factors' cost over the
+        free cameras (pose variables) and all points. ``fixed_cameras``: (C,) bool, poses
+        held (none by default: the gauge is left to the damping and the pose factors, as
+        Ceres and gtsam do). ``obs_sigma``: (M,) per observation (1 by default)."""
         o = self.options
         device, dtype = torch.device(o.device), getattr(torch, o.dtype)
         started = time.perf_counter()
@@ -141,6 +190,7 @@ class SchurAdjuster:
         cam = torch.as_tensor(obs_camera, device=device)
         pt = torch.as_tensor(obs_point, device=device)
         uv = tensor(obs_uv)
+        inv_sigma = 1 / tensor(obs_sigma if obs_sigma is not None else np.ones(len(uv)))
         num_cameras, num_points = len(rotation), len(points)
         free = torch.ones(num_cameras, dtype=dtype, device=device)
         if fixed_cameras is not None:
@@ -148,21 +198,27 @@ class SchurAdjuster:
         pairs = _Pairs(obs_point, obs_camera, num_cameras, device)
 
         def residuals(rotation, translation, points, jacobians: bool):
+            """Whitened residuals and, with ``jacobians``, robust-weighted residuals and
+            Jacobians (square root of the IRLS weight folded in)."""
             rx = torch.einsum("mij,mj->mi", rotation[cam], points[pt])
             in_cam = rx + translation[cam]
             projected, d_proj = model.project(in_cam, cam)
-            r = projected - uv
+            r = (projected - uv) * inv_sigma[:, None]
             if not jacobians:
                 return r
+            scale = (robust.weight((r * r).sum(1)).sqrt() * inv_sigma)[:, None, None]
+            d_proj = d_proj * scale
             j_point = d_proj @ rotation[cam]
             j_camera = torch.cat([-d_proj @ _skew(rx), d_proj], 2) * free[cam, None, None]
-            return r, j_camera, j_point
+            return r * scale[:, :, 0] / inv_sigma[:, None], j_camera, j_point
 
-        def cost(r):
-            return 0.5 * float((r * r).sum())
+        def cost(r, rotation, translation):
+            return float(robust.rho((r * r).sum(1)).sum()) + sum(
+                f.cost(rotation, translation) for f in pose_factors)
 
         r, j_camera, j_point = residuals(rotation, translation, points, True)
-        current = initial = cost(r)
+        current = initial = cost(residuals(rotation, translation, points, False), rotation,
+                                 translation)
         radius, nu = o.initial_trust_radius, 2.0
         history, converged, iteration = [], False, 0
         eye6 = torch.eye(6, dtype=dtype, device=device)
@@ -176,6 +232,19 @@ class SchurAdjuster:
                 0, cam, (j_camera.transpose(1, 2) @ r[:, :, None])[:, :, 0])
             g_point = torch.zeros(num_points, 3, dtype=dtype, device=device).index_add_(
                 0, pt, (j_point.transpose(1, 2) @ r[:, :, None])[:, :, 0])
+            off_block, off_value = [], []  # pose-pose blocks of the pose factors
+            for factors in pose_factors:
+                a, b, fr, ja, jb = factors.linearize(rotation, translation)
+                ja = ja * free[a, None, None]
+                u.index_add_(0, a, ja.transpose(1, 2) @ ja)
+                g_camera.index_add_(0, a, (ja.transpose(1, 2) @ fr[:, :, None])[:, :, 0])
+                if b is not None:
+                    jb = jb * free[b, None, None]
+                    u.index_add_(0, b, jb.transpose(1, 2) @ jb)
+                    g_camera.index_add_(0, b, (jb.transpose(1, 2) @ fr[:, :, None])[:, :, 0])
+                    cross = ja.transpose(1, 2) @ jb
+                    off_block += [a * num_cameras + b, b * num_cameras + a]
+                    off_value += [cross, cross.transpose(1, 2)]
             gradient_max = max(float(g_camera.abs().max()), float(g_point.abs().max()))
             if gradient_max <= o.gradient_tolerance:
                 converged = True
@@ -190,6 +259,8 @@ class SchurAdjuster:
                 blocks = torch.zeros(num_cameras * num_cameras, 6, 6, dtype=dtype,
                                      device=device).index_add_(
                     0, pairs.block, -(y[pairs.first] @ w[pairs.second].transpose(1, 2)))
+                for index, value in zip(off_block, off_value):
+                    blocks.index_add_(0, index, value)
                 blocks = blocks.view(num_cameras, num_cameras, 6, 6)
                 index = torch.arange(num_cameras, device=device)
                 blocks[index, index] += u_damped
@@ -212,7 +283,7 @@ class SchurAdjuster:
                 new_translation = translation + step_camera[:, 3:]
                 new_points = points + step_point
                 new_r = residuals(new_rotation, new_translation, new_points, False)
-                new_cost = cost(new_r)
+                new_cost = cost(new_r, new_rotation, new_translation)
                 # predicted decrease of the damped model: ½ δᵀ(D δ - g)
                 predicted = 0.5 * float((step_camera * (d_camera * step_camera - g_camera)).sum()
                                         + (step_point * (d_point * step_point - g_point)).sum())

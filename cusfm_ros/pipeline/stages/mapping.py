@@ -112,8 +112,8 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
                   start_world_from_rig: np.ndarray, measured_world_from_rig: np.ndarray,
                   options: MappingStageOptions = MappingStageOptions(),
                   refinement: IterativeMappingOptions = IterativeMappingOptions(),
-                  bundle: BundleOptions = BundleOptions(), frame_type: str = "rig"
-                  ) -> MappingOutput:
+                  bundle: BundleOptions = BundleOptions(), frame_type: str = "rig",
+                  device: str = "cpu") -> MappingOutput:
     """Triangulate and adjust. Poses are world_from_rig per rig sample in
     ``keyframes.sample_poses()`` order; ``measured`` gives the sequential factors."""
     if frame_type != "rig" and options.optimize_extrinsics:
@@ -136,7 +136,7 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
             f"{counts['verified_matches']} verified matches over {counts['pairs']} pairs "
             f"(need {refinement.min_points}); check the images overlap and the "
             "matcher settings")
-    result = IterativeMapper(refinement, bundle).solve(data)
+    result = IterativeMapper(refinement, bundle, device).solve(data)
     world_from_rig = refined_world_from_rig(structure, result, keyframes)
     rig_from_cam = {c.name: c.rig_from_cam for c in keyframes.rig}
     if options.optimize_extrinsics:
@@ -275,7 +275,7 @@ class MappingStage(Stage):
             pair_matches = [(a, b, verified.matches(a, b)) for a, b in pairs]
         output = map_keyframes(keyframes, keypoints, pair_matches, start, measured, o,
                                options.refinement, options.bundle_adjustment,
-                               options.frame_type)
+                               options.frame_type, options.device)
         summary = {**output.summary, "start_poses": source,
                    "options": options_as_dict(o), "frame_type": options.frame_type,
                    "refinement": options_as_dict(options.refinement),
