@@ -89,3 +89,19 @@ def test_what_torch_does_not_model_is_refused_or_left_to_gtsam(rng):
     with pytest.raises(ConfigError, match="solver must be one of auto, gtsam, torch"):
         BundleOptions(solver="ceres")
     assert isinstance(RelativeFactors.empty(), RelativeFactors)
+
+
+def test_without_torch_auto_falls_back_to_gtsam_and_torch_is_a_clear_error(monkeypatch):
+    """The ROS venv has no torch: auto on any device maps with gtsam; asking for torch says so."""
+    import sys
+
+    from cusfm_ros.core.mapping.iterative import _Adjusters
+
+    monkeypatch.setitem(sys.modules, "torch", None)  # import torch raises ImportError
+    for device in ("auto", "cpu"):
+        adjusters = _Adjusters(BundleOptions(solver="auto"), device)
+        assert adjusters.torch is None and adjusters.device == "cpu"
+    with pytest.raises(ConfigError, match="needs torch, which is not installed"):
+        _Adjusters(BundleOptions(solver="torch"), "cpu")
+    with pytest.raises(ConfigError, match="needs torch, which is not installed"):
+        _Adjusters(BundleOptions(solver="auto"), "cuda")

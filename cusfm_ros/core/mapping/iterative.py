@@ -105,9 +105,17 @@ class _Adjusters:
         self.gtsam = BundleAdjuster(bundle)
         self.torch = None
         self.device = "cpu"
+        self.told = False
         if bundle.solver == "torch" or (bundle.solver == "auto" and device != "cpu"):
-            import torch
-
+            try:
+                import torch
+            except ImportError:
+                if bundle.solver == "torch" or device == "cuda":
+                    raise ConfigError(
+                        f"bundle_adjustment.solver {bundle.solver} on --device {device} needs "
+                        "torch, which is not installed: install torch, or set "
+                        "bundle_adjustment.solver: gtsam") from None
+                return  # auto on a machine without torch: gtsam
             cuda = torch.cuda.is_available()
             if device == "cuda" and not cuda:
                 raise ConfigError("--device cuda: torch sees no CUDA GPU")
@@ -116,7 +124,6 @@ class _Adjusters:
                 from cusfm_ros.core.mapping.torch_bundle import TorchBundleAdjuster
 
                 self.torch = TorchBundleAdjuster(bundle, self.device)
-        self.told = False
 
     def solve(self, problem: BundleProblem, robust: bool, covariance: bool) -> BundleResult:
         if self.torch is not None:
