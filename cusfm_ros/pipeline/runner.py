@@ -25,6 +25,7 @@ import logging
 import os
 import platform
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -244,6 +245,7 @@ class StageRunner:
         base = {"stage": stage.name, "fingerprint": fingerprint, "options": own_options,
                 "inputs": context.input_digests, "external": payload["external"]}
         self._write_record(record_path, {**base, "status": "running"})
+        _gpu_peak_mb(reset=True)
         tick = time.perf_counter()
         counts = stage.run(context)
         seconds = time.perf_counter() - tick
@@ -251,6 +253,8 @@ class StageRunner:
                    for a in stage.outputs + stage.optional_outputs}
         entry = {**base, "status": "complete", "seconds": round(seconds, 3),
                  "counts": counts, "outputs": outputs}
+        if (peak := _gpu_peak_mb()) is not None:
+            entry["gpu_peak_mb"] = peak
         self._write_record(record_path, entry)
         logger.info("stage %s done in %.1f s: %s", stage.name, seconds, counts)
         return {**entry, "reused": False}
@@ -289,6 +293,8 @@ class StageRunner:
                 continue
             stages[stage.name] = {"seconds": entry["seconds"], "reused": entry.get("reused",
                                                                                    True),
+                                  **({"gpu_peak_mb": entry["gpu_peak_mb"]}
+                                     if "gpu_peak_mb" in entry else {}),
                                   **entry["counts"], "fingerprint": entry["fingerprint"],
                                   "options": entry["options"]}
         report = {**status, "steps": steps,
@@ -314,4 +320,18 @@ def _summary(stages: dict) -> dict:
             "loops": get("loops", "loops"),
             "odometry_scale": get("mapping", "odometry_scale"),
             "camera_self_calibration": get("mapping", "camera_self_calibration"),
-            "seconds_per_stage": {k: v.get("seconds") for k, v in stages.items()}}
+            "seconds_per_stage": {k: v.get("seconds") for k, v in stages.items()},
+            "gpu_peak_mb": max((v["gpu_peak_mb"] for v in stages.values()
+                                if "gpu_peak_mb" in v), default=None)}
+
+
+def _gpu_peak_mb(reset: bool = False) -> float | None:
+    """Peak CUDA memory torch allocated since the last reset, in MiB; None when this process
+    has not used a GPU through torch (torch is never imported here for it)."""
+    torch = sys.modules.get("torch")
+    if torch is None or not torch.cuda.is_available() or not torch.cuda.is_initialized():
+        return None
+    peak = round(torch.cuda.max_memory_allocated() / 2**20, 1)
+    if reset:
+        torch.cuda.reset_peak_memory_stats()
+    return peak
