@@ -7,7 +7,7 @@ DEMO_OUT ?= demo_out
 MODELS := $(VENV)/.models
 export CUSFM_MODEL_DIR ?= $(CURDIR)/.models
 
-.PHONY: demo test test-all lint models clean ros test-ros
+.PHONY: demo test test-all lint models clean ros test-ros bench-deps
 
 $(STAMP): requirements.txt setup.py setup.cfg
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +45,10 @@ ros: $(ROS_STAMP)
 test-ros: $(ROS_STAMP) $(MODELS)
 	tools/build_ros.sh $(PYTHON) $(ROS_VENV) --cusfm-ros-only
 	tools/ros_env.sh $(ROS_VENV) $(ROS_VENV)/bin/python -m pytest -q -p no:cacheprovider test/ros
+
+# The peers of bench/compare.py and bench/ba.py: COLMAP (pycolmap) and pyceres
+bench-deps: $(STAMP) $(MODELS)
+	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements-bench.txt
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check cusfm_ros test bench

@@ -1,8 +1,10 @@
 """Bundle adjustment alone on a BAL problem (e.g. the real Ladybug-49 in
 ../shared/realdata/bal/): our torch Levenberg–Marquardt + Schur adjuster on the CPU or a GPU,
-or gtsam's (CPU), intrinsics held fixed, no robust loss.
+or gtsam's (CPU), or the peers of ``bench/ba_peers.py`` (COLMAP's adjuster through pycolmap;
+pyceres with a Python cost function), intrinsics held fixed, no robust loss.
 
-Usage: python bench/ba.py BAL_FILE --solver ours|gtsam [--device cpu|cuda] [--json]
+Usage: python bench/ba.py BAL_FILE --solver ours|gtsam|pycolmap|pyceres [--device cpu|cuda]
+                          [--json]
                           [--out ADJUSTED.txt] [--max-iterations 100]
        python bench/ba.py --synthetic CAMERAS [--points-per-camera 40] ...
 (a street of CAMERAS cameras 1 m apart, each point seen from about 8 of them: the scaling
@@ -28,6 +30,11 @@ from cusfm_ros.io.bal_file import read_bal, write_bal
 
 def adjust(problem: BalProblem, solver: str, device: str, max_iterations: int
            ) -> tuple[BalProblem, dict]:
+    if solver in ("pycolmap", "pyceres"):
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import ba_peers
+
+        return getattr(ba_peers, f"{solver}_adjust")(problem, max_iterations)
     if solver == "gtsam":
         from cusfm_ros.core.mapping.bal_gtsam import GtsamBalAdjuster, GtsamBalOptions
 
@@ -62,14 +69,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bal_file", nargs="?")
     parser.add_argument("--synthetic", type=int, default=None, metavar="CAMERAS")
     parser.add_argument("--points-per-camera", type=int, default=40)
-    parser.add_argument("--solver", choices=("ours", "gtsam"), default="ours")
+    parser.add_argument("--solver", choices=("ours", "gtsam", "pycolmap", "pyceres"),
+                        default="ours")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (ours only)")
     parser.add_argument("--max-iterations", type=int, default=100)
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--out", default=None, help="write the adjusted problem (BAL)")
     args = parser.parse_args(argv)
-    if args.solver == "gtsam" and args.device != "cpu":
-        parser.error("gtsam runs on the CPU only")
+    if args.solver != "ours" and args.device != "cpu":
+        parser.error(f"{args.solver} runs on the CPU only here")
     if (args.bal_file is None) == (args.synthetic is None):
         parser.error("give a BAL_FILE or --synthetic CAMERAS")
     if args.synthetic is not None:
