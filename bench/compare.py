@@ -98,7 +98,9 @@ def row(result: dict, spec: dict) -> dict:
     frames = spec["frames"]
     per_100 = 100.0 / frames
     stages = result.get("stages_s", {})
-    if result["system"] in OURS:
+    if not stages:  # failed or timed out before reporting its stages
+        columns = {}
+    elif result["system"] in OURS:
         columns = {c: sum(stages.get(s, 0.0) for s in OUR_STAGES[c]) for c in STAGE_COLUMNS}
     else:
         columns = {c: stages[c] for c in STAGE_COLUMNS if c in stages}
