@@ -145,14 +145,14 @@ def markdown(rows: list[dict], header: str) -> str:
 
 
 def machine() -> str:
-    gpu = "no GPU"
+    """CPU cores and GPU name (through nvidia-smi: importing torch here would raise every
+    child's peak memory)."""
     try:
-        import torch
-
-        if torch.cuda.is_available():
-            gpu = torch.cuda.get_device_name(0)
-    except ImportError:
-        pass
+        gpu = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        gpu = ""
+    gpu = gpu.splitlines()[0] if gpu else "no GPU"
     return f"{platform.node()}: {os.cpu_count()} CPU cores, {gpu}"
 
 
