@@ -19,8 +19,16 @@ ROW_KEYS = {"input", "frames", "system", "seconds_per_100_frames", "total_s",
 STATS = {"rmse", "mean", "median", "std", "min", "max", "n"}
 
 
-def test_compare_writes_both_tables_for_ours_and_colmap(tmp_path, models_ready):
+@pytest.fixture(scope="module")
+def bench_out(tmp_path_factory):
+    """One output folder for both benches: the simulated input is made once."""
+    return tmp_path_factory.mktemp("bench")
+
+
+def test_compare_writes_both_tables_for_ours_and_colmap(bench_out):
     import compare
+
+    tmp_path = bench_out
 
     systems = ["ours_view_graph_sift"]
     has_colmap = importlib.util.find_spec("pycolmap") is not None
@@ -49,6 +57,22 @@ def test_compare_writes_both_tables_for_ours_and_colmap(tmp_path, models_ready):
     text = (tmp_path / "compare.md").read_text()
     assert "Table 3" in text and "Table 4" in text
     assert text.count("| street | 30 | ours_view_graph_sift |") == 3  # table 3; sim3, se3
+
+
+def test_gpu_bench_runs_each_device_and_reports_the_stages(bench_out):
+    """On CI's CPU-only machine: the CPU row (the cuda row needs a GPU)."""
+    import gpu
+
+    assert gpu.main(["--out", str(bench_out), "--frames", "30", "--devices", "cpu",
+                     "--features", "sift", "--image-size", "640", "240"]) == 0
+    report = json.loads((bench_out / "gpu.json").read_text())
+    assert report["format"] == "cusfm_gpu_bench/1"
+    (row,) = report["rows"]
+    assert row["device"] == "cpu" and row["frames"] == 30 and row["failed"] is None
+    assert row["ate_m"]["se3"]["rmse"] < 0.1
+    assert row["gpu_peak_mb"] is None  # no GPU was used
+    assert sum(row["seconds_per_100_frames"].values()) < row["total_per_100_frames_s"]
+    assert "| 30 | cpu | " in (bench_out / "gpu.md").read_text()
 
 
 @pytest.mark.parametrize("solver", ["pycolmap", "pyceres"])

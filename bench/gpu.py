@@ -1,0 +1,77 @@
+"""The GPU path against the same machine's CPUs: ``cusfm map`` on the simulated 1241x376
+stereo street (2 laps, seed 0) at each frame count, on each device, one process per run
+(``bench/compare_systems.py``), seconds per 100 frames by stage, peak resident and GPU
+memory, and the ATE, so that speed never hides a worse map.
+
+    python bench/gpu.py --out /tmp/gpu [--frames 100 300 1000] [--devices cuda cpu]
+                        [--features sift|aliked] [--time-limit-s 1800]
+
+Installs nothing: run it where ``make test`` runs, on a machine with a GPU. Writes
+``OUT/gpu.json`` and ``OUT/gpu.md`` after every run. A run past the time limit is a row
+that says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import compare  # noqa: E402 - the bench folder is not a package
+
+
+def markdown(rows: list[dict], header: str) -> str:
+    columns = compare.STAGE_COLUMNS
+    lines = [header, "", "Seconds per 100 frames by stage (total: the whole process)", "",
+             "| frames | device | " + " | ".join(columns) + " | total | peak RSS MB | "
+             "GPU peak MB | ATE SE(3) m |", "|---" * (len(columns) + 6) + "|"]
+    for r in rows:
+        stages = [compare._cell(r["seconds_per_100_frames"].get(c), 1) for c in columns]
+        total = r["failed"] or compare._cell(r["total_per_100_frames_s"], 1)
+        ate = r["ate_m"].get("se3", {}).get("rmse")
+        lines.append(f"| {r['frames']} | {r['device']} | " + " | ".join(stages)
+                     + f" | {total} | {r['peak_rss_mb']:.0f} | "
+                     f"{compare._cell(r['gpu_peak_mb'], 0)} | {compare._cell(ate, 4)} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--frames", nargs="+", type=int, default=[100, 300, 1000])
+    parser.add_argument("--devices", nargs="+", choices=("cuda", "cpu"), default=["cuda",
+                                                                                 "cpu"])
+    parser.add_argument("--features", choices=("sift", "aliked"), default="aliked")
+    parser.add_argument("--max-keypoints", type=int, default=2048)
+    parser.add_argument("--time-limit-s", type=float, default=1800.0)
+    parser.add_argument("--image-size", type=int, nargs=2, default=(1241, 376),
+                        metavar=("WIDTH", "HEIGHT"))
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    header = (f"{compare.machine()}; `python bench/gpu.py "
+              f"{' '.join(argv if argv is not None else sys.argv[1:])}`")
+    system = f"ours_view_graph_{args.features}"
+    rows = []
+    for frames in args.frames:
+        spec_path = compare.prepare("street", out / "inputs", frames, args.image_size)
+        spec = json.loads(spec_path.read_text())
+        for device in args.devices:
+            run = argparse.Namespace(device=device, max_keypoints=args.max_keypoints,
+                                     time_limit_s=args.time_limit_s)
+            result = compare.run_system(system, spec_path, out / "runs" / f"{frames}_{device}",
+                                        run)
+            rows.append({**compare.row(result, spec), "device": device})
+            (out / "gpu.json").write_text(json.dumps(
+                {"format": "cusfm_gpu_bench/1", "header": header, "rows": rows}, indent=1)
+                + "\n")
+            (out / "gpu.md").write_text(markdown(rows, header))
+    print(markdown(rows, header))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
