@@ -12,12 +12,12 @@ import sys
 from collections.abc import Sequence
 
 from cusfm_ros import __version__
-from cusfm_ros.cli import (calibrate, convert, demo, evaluate, inspect, keyframes, localize, map,
-                           map_update, match, models, report, simulate, vocab)
+from cusfm_ros.cli import (calibrate, convert, demo, evaluate, fleet, inspect, keyframes,
+                           localize, map, map_update, match, models, report, simulate, vocab)
 from cusfm_ros.errors import CusfmError
 
-SUBCOMMANDS = (simulate, convert, inspect, keyframes, map, map_update, localize, calibrate,
-               match, models, vocab, evaluate, report, demo)
+SUBCOMMANDS = (simulate, convert, inspect, keyframes, map, map_update, fleet, localize,
+               calibrate, match, models, vocab, evaluate, report, demo)
 
 
 def build_parser() -> argparse.ArgumentParser:

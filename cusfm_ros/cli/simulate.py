@@ -49,6 +49,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="perturb /tf_static extrinsics by T m and R degrees")
     parser.add_argument("--rolling-shutter", type=float, default=0.0, metavar="LINE_DELAY_S",
                         help="render with a rolling shutter of this line delay")
+    parser.add_argument("--sessions", type=int, default=1,
+                        help="drives over the same world (bag_session<k>/ for k > 1)")
     parser.add_argument("--second-session", action="store_true",
                         help="also record a second drive starting elsewhere")
     parser.add_argument("--storage", choices=sorted(STORAGES), default="mcap")
@@ -70,6 +72,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         pose_noise_m=_pair(args.pose_noise, "--pose-noise"),
         extrinsic_noise=_pair(args.extrinsic_noise, "--extrinsic-noise"),
         rolling_shutter_line_delay_s=args.rolling_shutter, second_session=args.second_session,
+        sessions=args.sessions,
         storage=args.storage, compressed=args.compressed, sensor_noise=not args.no_sensor_noise,
         seed=args.seed, workers=args.workers)
 

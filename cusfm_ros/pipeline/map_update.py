@@ -136,8 +136,11 @@ def _merged_rig(old: Rig, new: Rig) -> tuple[Rig, dict[str, str]]:
 
 
 def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, options,
-               update: MapUpdateOptions = MapUpdateOptions(), overwrite: bool = False) -> dict:
-    """Merge the drive in ``bag`` into the map at ``map_dir``; results in ``out_dir``."""
+               update: MapUpdateOptions = MapUpdateOptions(), overwrite: bool = False,
+               session_dir: str | Path | None = None) -> dict:
+    """Merge the drive in ``bag`` into the map at ``map_dir``; results in ``out_dir``.
+    ``session_dir``: the bag's own run directory (its front stages are reused where up to
+    date, as fleet mapping does); default ``out_dir/new_session``."""
     started = time.perf_counter()
     map_dir, out = map_dir_of(map_dir), Path(out_dir)
     if out.resolve() == map_dir.resolve() or map_dir.resolve() in out.resolve().parents:
@@ -147,7 +150,7 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
     features_options = map_feature_options(prior, options.features.model_dir,
                                            options.features.backend)
     options = replace(options, features=features_options)
-    session = RunDir(out / "new_session")
+    session = RunDir(Path(session_dir) if session_dir is not None else out / "new_session")
     timings = {}
     Mapper(options).solve(bag, session.root, FRONT_STAGES, overwrite)
     timings["new_session_s"] = time.perf_counter() - started

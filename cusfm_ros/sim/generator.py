@@ -8,7 +8,8 @@ Outputs (all in ``OUT_DIR``, which appears only when everything is written):
 - ``ground_truth.tum``: true ``world_from_base_link`` at every rig sample stamp;
 - ``extrinsics_gt.yaml``: true ``base_link_from_cam``;
 - ``scene.json``: every parameter, including the seed;
-- with ``second_session``: ``bag_session2/`` and ``ground_truth_session2.tum``.
+- with ``second_session`` or ``sessions`` N: ``bag_session<k>/`` and
+  ``ground_truth_session<k>.tum`` for k = 2..N.
 """
 
 from __future__ import annotations
@@ -74,6 +75,9 @@ class SimulationOptions:
     """(metres, degrees) by which /tf_static extrinsics are perturbed; GT stays exact."""
     rolling_shutter_line_delay_s: float = 0.0
     second_session: bool = False
+    sessions: int = 1
+    """Drives over the same world (``second_session`` asks for 2): session k > 1 goes to
+    ``bag_session<k>/`` and ``ground_truth_session<k>.tum``."""
     storage: str = "mcap"
     compressed: bool = False
     sensor_noise: bool = True
@@ -99,6 +103,7 @@ class SimulationOptions:
             (min(self.pose_noise_m) >= 0 and min(self.extrinsic_noise) >= 0,
              "noise magnitudes must be >= 0"),
             (self.odom_rate_factor >= 1, "odom_rate_factor must be >= 1"),
+            (self.sessions >= 1, f"--sessions must be at least 1, got {self.sessions}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -158,6 +163,7 @@ class Simulator:
         perimeter = max(min_perimeter, distance / o.loops)
         self.speed_mps = speed
         self.laps = distance / perimeter
+        self.num_sessions = max(o.sessions, 2 if o.second_session else 1)
         if self.laps < o.loops - 1e-9:
             # a partial single lap is ordinary; missing revisits that were asked for is not
             logger.log(logging.WARNING if o.loops > 1 else logging.INFO,
@@ -178,13 +184,18 @@ class Simulator:
         o = self.options
         start = Motion(self.route, self.speed_mps, 0.0, self.height, phase=0.0)
         plans = [SessionPlan("session1", start, o.frames, Rigid3.identity(), 0.0, o.seed)]
-        if o.second_session:
-            frames = max(int(round(o.frames / self.laps)), 2) if self.laps >= 1 else o.frames
-            second = Motion(self.route, self.speed_mps, self.route.perimeter_m * 0.5 + 3.0,
-                            self.height, phase=1.3)
-            first_pose = Rigid3.from_matrix(second.world_from_body(np.array([0.0]))[0])
-            plans.append(SessionPlan("session2", second, frames, first_pose.inverse(), 0.5,
-                                     o.seed + 1000, o.frames / self.rate_hz + 60.0))
+        frames = max(int(round(o.frames / self.laps)), 2) if self.laps >= 1 else o.frames
+        for k in range(1, self.num_sessions):
+            # session 2 starts half a route ahead; later ones spread around the route, each
+            # recorded a minute after the one before, in its own light
+            along_m = self.route.perimeter_m * (0.5 if k == 1 else k / self.num_sessions
+                                                 + 0.25 / self.num_sessions) + 3.0
+            motion = Motion(self.route, self.speed_mps, along_m, self.height,
+                            phase=1.3 + 0.9 * (k - 1))
+            first_pose = Rigid3.from_matrix(motion.world_from_body(np.array([0.0]))[0])
+            plans.append(SessionPlan(f"session{k + 1}", motion, frames, first_pose.inverse(),
+                                     0.5 + 0.3 * (k - 1), o.seed + 1000 * k,
+                                     k * (o.frames / self.rate_hz + 60.0)))
         for plan in plans:
             times = np.arange(plan.frames) / self.rate_hz
             plan.ground_truth = Trajectory(self._stamps(times + plan.start_offset_s),
@@ -262,7 +273,7 @@ class Simulator:
                     workers, mp_context=context, initializer=_init_worker,
                     initargs=(renderer, [self.camera], rays)) as pool:
                 for plan in plans:
-                    suffix = "" if plan.name == "session1" else "_session2"
+                    suffix = "" if plan.name == "session1" else f"_{plan.name}"
                     self._write_session(plan, tmp / f"bag{suffix}", pool, stats)
                     write_tum(tmp / f"ground_truth{suffix}.tum", plan.ground_truth)
             write_extrinsics(tmp / "extrinsics_gt.yaml", Extrinsics(
