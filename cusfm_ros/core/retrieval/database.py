@@ -50,17 +50,24 @@ class ImageDatabase:
     def __len__(self) -> int:
         return len(self.names)
 
-    def query(self, descriptors: np.ndarray, stamp_ns: int, top_k: int = 5,
+    def vector(self, index: int) -> sp.csr_matrix:
+        """The stored TF-IDF vector of the ``index``-th image added."""
+        return self._rows[index]
+
+    def query(self, descriptors: np.ndarray | None, stamp_ns: int, top_k: int = 5,
               exclude_within_s: float = 10.0, min_score: float = 0.0,
-              exclude: np.ndarray | None = None) -> list[Candidate]:
+              exclude: np.ndarray | None = None,
+              vector: sp.csr_matrix | None = None) -> list[Candidate]:
         """Most similar images (cosine of TF-IDF vectors), excluding those taken within
         ``exclude_within_s`` of ``stamp_ns`` and those flagged in ``exclude`` (bool per image,
-        e.g. neighbours along the travelled path)."""
+        e.g. neighbours along the travelled path). ``vector``: the query's TF-IDF vector when
+        known (an image of the database: ``vector(i)``), instead of its descriptors."""
         if not self.names:
             return []
         if self._matrix is None:
             self._matrix = sp.vstack(self._rows).tocsr()
-        scores = (self._matrix @ self.bow(descriptors).T).toarray().ravel()
+        query = vector if vector is not None else self.bow(descriptors)
+        scores = (self._matrix @ query.T).toarray().ravel()
         window = np.abs(np.asarray(self.stamps_ns) - stamp_ns) <= exclude_within_s * 1e9
         scores[window] = -1.0
         if exclude is not None:

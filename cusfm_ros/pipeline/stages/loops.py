@@ -57,9 +57,9 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
     progress = Progress("loops", len(frames), "keyframes")
     for index, query in enumerate(frames):
         candidates = database.query(
-            features[query.image_name].descriptors, query.stamp_ns, options.top_k,
-            options.exclude_within_s, options.min_score,
-            exclude=np.abs(path_m - path_m[index]) < options.exclude_within_path_m)
+            None, query.stamp_ns, options.top_k, options.exclude_within_s, options.min_score,
+            exclude=np.abs(path_m - path_m[index]) < options.exclude_within_path_m,
+            vector=database.vector(index))  # quantized once, when added
         for candidate in candidates:
             match = by_name[candidate.image]
             if match.stamp_ns >= query.stamp_ns:
