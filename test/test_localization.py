@@ -471,6 +471,23 @@ def test_map_update_fixed_keeps_the_map_and_adjust_improves_both_sessions(mapped
     # measured 2026-12-02: session 1 0.0253 -> 0.0230 m, session 2 0.0320 -> 0.0267 m
     assert s1[1] < s1[0] and s2[1] < s2[0], (s1, s2)
     assert _ate(truth2, fixed / "sessions" / "new" / "poses.tum") < s2[0]
+    # the fleet fans a drive's localization out in chunks: the split changes nothing
+    from cusfm_ros.io.run_dir import RunDir
+    from cusfm_ros.pipeline.map_update import localize_samples
+    from cusfm_ros.pipeline.options import resolve_options
+    from cusfm_ros.pipeline.stores import load_keyframes
+
+    options = resolve_options(None, {})
+    ids = load_keyframes(RunDir(alone)).sample_poses()[0][::10]
+    whole = localize_samples(str(run), str(alone), ids, options)
+    split = {**localize_samples(str(run), str(alone), ids[:2], options),
+             **localize_samples(str(run), str(alone), ids[2:], options)}
+    assert sum(r.success for r in whole.values()) >= len(ids) - 1
+    for sample in ids:
+        assert whole[sample].success == split[sample].success
+        if whole[sample].success:
+            assert np.array_equal(whole[sample].map_from_base_link.matrix(),
+                                  split[sample].map_from_base_link.matrix())
 
 
 def test_localize_service_logic_answers_and_survives_bad_requests(mapped, tmp_path):

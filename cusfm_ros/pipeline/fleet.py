@@ -10,8 +10,9 @@
    and left out; the others go on.
 3. The merge runs the map-update path (``update_map``) once per drive, each a Ray task, in
    bag order: into ``--base-map`` when given (``fixed`` keeps it exactly), else into the first
-   drive's own map; each merge reuses the drive's front stages from step 1. The last merge
-   is the fleet's map, with every drive's trajectory.
+   drive's own map; each merge reuses the drive's front stages from step 1 and fans the
+   localization of the drive's samples against the map (retrieval, matching, pose) out over
+   Ray tasks. The last merge is the fleet's map, with every drive's trajectory.
 
 Outputs in ``FLEET``: ``sessions/<name>/`` (each drive alone), ``merges/<name>/`` (the map
 after merging that drive), ``trajectories/<name>.tum`` (each drive's refined poses in the merged
@@ -83,11 +84,18 @@ def map_session(bag: str, run_dir: str, options) -> dict:
 def merge_session(map_dir: str, bag: str, session_dir: str, out_dir: str, options,
                   mode: str) -> dict:
     """A Ray task: one drive merged into a map (``update_map``)."""
-    from cusfm_ros.pipeline.map_update import MapUpdateOptions, update_map
+    import ray
+
+    from cusfm_ros.pipeline.map_update import MapUpdateOptions, localize_samples, update_map
+
+    def fan_out(chunks: list[list[str]]) -> list[dict]:
+        """The drive's samples localized against the map in parallel Ray tasks."""
+        task = ray.remote(max_retries=2)(localize_samples)
+        return ray.get([task.remote(map_dir, session_dir, ids, options) for ids in chunks])
 
     started = time.perf_counter()
     counts = update_map(map_dir, bag, out_dir, options, MapUpdateOptions(mode=mode),
-                        session_dir=session_dir)
+                        session_dir=session_dir, fan_out=fan_out)
     return {"out": out_dir, "seconds": time.perf_counter() - started,
             "localized": counts["localized"], "new_samples": counts["new_samples"],
             "points": counts["points"], "worker_pid": os.getpid(),

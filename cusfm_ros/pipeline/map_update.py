@@ -135,12 +135,39 @@ def _merged_rig(old: Rig, new: Rig) -> tuple[Rig, dict[str, str]]:
     return Rig(tuple(cameras), old.base_frame_id), names
 
 
+def _queries(keyframes: KeyframeSet, samples: dict, sample_id: str, store) -> list[QueryImage]:
+    return [QueryImage(None, keyframes.rig[k.camera_name].camera,
+                       keyframes.rig[k.camera_name].rig_from_cam, k.image_name,
+                       store.features(k.image_name)) for k in samples[sample_id]]
+
+
+def localize_samples(map_dir: str, session_dir: str, sample_ids: list[str], options) -> dict:
+    """Localize these rig samples of a session (its run directory) against a map: sample id
+    -> result with its raw matches. One unit of work on its own inputs, so that many can run
+    at once (``cusfm fleet`` fans them out over Ray); each query seeds its own RANSAC, so
+    the results do not depend on how the samples are split."""
+    prior = read_map_store(map_dir_of(map_dir))
+    features_options = map_feature_options(prior, options.features.model_dir,
+                                           options.features.backend)
+    options = replace(options, features=features_options)
+    session = RunDir(Path(session_dir))
+    keyframes = load_keyframes(session)
+    samples = keyframes.samples()
+    localizer = Localizer(prior, None, make_matcher(features_options, options.device),
+                          LocalizerOptions(seed=options.seed))
+    with open_features(session, options) as store:
+        return {s: localizer.localize(_queries(keyframes, samples, s, store), keep_matches=True)
+                for s in sample_ids}
+
+
 def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, options,
                update: MapUpdateOptions = MapUpdateOptions(), overwrite: bool = False,
-               session_dir: str | Path | None = None) -> dict:
+               session_dir: str | Path | None = None, fan_out=None) -> dict:
     """Merge the drive in ``bag`` into the map at ``map_dir``; results in ``out_dir``.
     ``session_dir``: the bag's own run directory (its front stages are reused where up to
-    date, as fleet mapping does); default ``out_dir/new_session``."""
+    date, as fleet mapping does); default ``out_dir/new_session``. ``fan_out(chunks)``:
+    runs ``localize_samples(map_dir, session_dir, ids, options)`` for each chunk of sample
+    ids elsewhere (Ray tasks) and returns their results; default: here, one by one."""
     started = time.perf_counter()
     map_dir, out = map_dir_of(map_dir), Path(out_dir)
     if out.resolve() == map_dir.resolve() or map_dir.resolve() in out.resolve().parents:
@@ -173,13 +200,16 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
     localized, results = {}, {}
     raw = _MemoryMatches()  # the localizer's matches: the cross pairs reuse them
     tick = time.perf_counter()
+    fanned = {}
+    if fan_out is not None:
+        chunk = max(1, -(-len(new_ids) // 16))
+        for part in fan_out([new_ids[i:i + chunk] for i in range(0, len(new_ids), chunk)]):
+            fanned.update(part)
     with open_features(session, options) as store:
         progress = Progress("map update: localize", len(new_ids), "samples")
         for i, sample_id in enumerate(new_ids):
-            queries = [QueryImage(None, new_keyframes.rig[k.camera_name].camera,
-                                  new_keyframes.rig[k.camera_name].rig_from_cam, k.image_name,
-                                  store.features(k.image_name)) for k in samples[sample_id]]
-            result = localizer.localize(queries, keep_matches=True)
+            result = (fanned[sample_id] if sample_id in fanned else localizer.localize(
+                _queries(new_keyframes, samples, sample_id, store), keep_matches=True))
             for (a, b), matches in result.raw_matches.items():
                 raw.put_matches(a, b, matches)
             result.raw_matches = {}
