@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cusfm_ros.core.evaluation import absolute_trajectory_error
@@ -96,7 +97,23 @@ def test_three_drives_make_one_map_within_tolerance(fleet_run):
         # measured 2026-12-03 (40 frames): 0.022 / 0.032 / 0.014 m merged, 0.054 m alone
         # for drive 2
         assert error < 0.08, (name, error, alone.rmse)
-    assert "fleet: 3/4 drives mapped" not in output or "ETA" in output  # progress shown
+    assert "ETA" in output  # progress across the cluster
+    # one vocabulary over the three drives, streamed into BIRCH, used by the merged map
+    from cusfm_ros.io.feature_store import FeatureStore
+    from cusfm_ros.io.map_store import read_map_store
+    from cusfm_ros.io.run_dir import RunDir
+    from cusfm_ros.io.vocabulary_file import load_vocabulary
+
+    total = 0
+    for name in TRUTH:
+        with FeatureStore(RunDir(fleet / "sessions" / name).features, {},
+                          read_only=True) as store:
+            total += sum(len(store.features(n).descriptors) for n in store.feature_names())
+    assert report["vocabulary"]["descriptors"] == total
+    fleet_vocabulary = load_vocabulary(fleet / "vocabulary" / "vocabulary.npz")
+    merged_map = read_map_store(final)
+    assert np.array_equal(merged_map.vocabulary.centroids, fleet_vocabulary.centroids)
+    assert merged_map.bow.shape == (merged_map.num_keyframes, fleet_vocabulary.num_words)
 
 
 def test_a_broken_bag_is_dropped_with_its_reason(fleet_run):

@@ -14,6 +14,11 @@
    localization of the drive's samples against the map (retrieval, matching, pose) out over
    Ray tasks. The last merge is the fleet's map, with every drive's trajectory.
 
+Without ``--base-map`` the drives share one vocabulary: every drive's descriptors streamed
+into one BIRCH CF tree (a Ray task; memory follows the tree, not the fleet), refined into
+``FLEET/vocabulary/vocabulary.npz``; the first drive's map is re-indexed with it
+(``FLEET/base/``) and the merges start from there. With ``--base-map`` its vocabulary stays.
+
 Outputs in ``FLEET``: ``sessions/<name>/`` (each drive alone), ``merges/<name>/`` (the map
 after merging that drive), ``trajectories/<name>.tum`` (each drive's refined poses in the merged
 map), ``map`` (the path of the final map directory, a text file) and ``report.json``
@@ -30,7 +35,7 @@ import logging
 import os
 import resource
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from cusfm_ros.core.trajectory import Trajectory
@@ -102,6 +107,65 @@ def merge_session(map_dir: str, bag: str, session_dir: str, out_dir: str, option
             "worker_peak_rss_mb": _peak_rss_mb()}
 
 
+def _descriptors(session_dirs: list[str]):
+    """Every image's descriptors of these runs, one image at a time."""
+    from cusfm_ros.io.feature_store import FeatureStore
+    from cusfm_ros.io.run_dir import RunDir
+
+    for session in session_dirs:
+        with FeatureStore(RunDir(Path(session)).features, {}, read_only=True) as store:
+            for name in store.feature_names():
+                yield store.features(name).descriptors
+
+
+def build_fleet_vocabulary(session_dirs: list[str], path: str, options) -> dict:
+    """A Ray task: one vocabulary over every drive, grown incrementally — each drive's
+    descriptors streamed into one BIRCH CF tree (memory follows the tree's entries, not the
+    fleet's descriptors), refined into the vocabulary tree, IDF from a second stream."""
+    from cusfm_ros.core.retrieval.birch import BirchOptions, BirchVocabularyBuilder
+    from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions
+    from cusfm_ros.io.vocabulary_file import save_vocabulary
+
+    o = options.vocabulary
+    builder = BirchVocabularyBuilder(BirchOptions(threshold=o.birch_threshold),
+                                     VocabularyOptions(o.branching, o.depth, seed=options.seed,
+                                                       workers=o.workers))
+    started = time.perf_counter()
+    for descriptors in _descriptors(session_dirs):
+        builder.insert(descriptors)
+    tree = builder.solve(None)
+    tree.set_idf(_descriptors(session_dirs))
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    save_vocabulary(path, tree)
+    return {"path": path, "descriptors": builder.count, "entries": len(builder
+                                                                    .clustering_features()[0]),
+            "words": tree.num_words, "seconds": time.perf_counter() - started,
+            "worker_peak_rss_mb": _peak_rss_mb()}
+
+
+def reindex_map(map_dir: str, session_dir: str, vocabulary_path: str, out_dir: str) -> str:
+    """A copy of a drive's map whose retrieval uses the fleet's vocabulary: every keyframe's
+    TF-IDF vector recomputed from all its keypoints (the drive's feature store)."""
+    import scipy.sparse as sp
+
+    from cusfm_ros.core.retrieval.database import ImageDatabase
+    from cusfm_ros.io.feature_store import FeatureStore
+    from cusfm_ros.io.map_store import map_poses_text, read_map_store, write_map_store
+    from cusfm_ros.io.run_dir import RunDir
+    from cusfm_ros.io.vocabulary_file import load_vocabulary
+
+    prior = read_map_store(map_dir, mmap=False)
+    vocabulary = load_vocabulary(vocabulary_path)
+    database = ImageDatabase(vocabulary)
+    with FeatureStore(RunDir(Path(session_dir)).features, {}, read_only=True) as store:
+        rows = [database.bow(store.features(k.image_name).descriptors)
+                for k in prior.keyframes.keyframes]
+    out = Path(out_dir) / "map"
+    write_map_store(out, replace(prior, vocabulary=vocabulary, bow=sp.vstack(rows).tocsr()),
+                    map_poses_text(map_dir))
+    return str(out)
+
+
 def _reason(error: BaseException) -> str:
     """The one-line reason of a failed task (the CusfmError inside Ray's wrapper)."""
     cause = getattr(error, "cause", None) or error
@@ -143,15 +207,19 @@ class FleetMapper:
         ray, gpus = self._start_ray()
         try:
             sessions, dropped = self._map_sessions(ray, gpus, out, names, bag_of)
+            vocabulary, start = None, base_map
+            if base_map is None and sessions:
+                vocabulary, start = self._vocabulary(ray, out, names, sessions)
             merges, final = self._merge(ray, gpus, out, names, bag_of, sessions, dropped,
-                                        base_map)
+                                        start, base_map is not None)
         finally:
             ray.shutdown()
         trajectories = self._trajectories(out, final, names, sessions, dropped, base_map)
         report = {"format": "cusfm_fleet_report/1",
                   "status": "complete" if final is not None else "failed",
                   "bags": bag_of, "base_map": None if base_map is None else str(base_map),
-                  "mode": self.fleet.mode, "sessions": sessions, "merges": merges,
+                  "mode": self.fleet.mode, "sessions": sessions, "vocabulary": vocabulary,
+                  "merges": merges,
                   "dropped": dropped, "map": None if final is None else str(final),
                   "trajectories": trajectories, "seconds": time.perf_counter() - started}
         if final is not None:
@@ -189,14 +257,35 @@ class FleetMapper:
                         len(pending) / max(rate, 1e-9))
         return sessions, dropped
 
+    # ----------------------------------------------------------------------- vocabulary
+    def _vocabulary(self, ray, out: Path, names: list[str], sessions: dict
+                    ) -> tuple[dict, Path]:
+        """The fleet's vocabulary (every drive), and the first drive's map re-indexed with
+        it: the merges start from there, so the merged map retrieves with it."""
+        runs = [sessions[n]["run"] for n in names if n in sessions]
+        build = ray.remote(max_retries=self.fleet.max_retries)(build_fleet_vocabulary)
+        vocabulary = ray.get(build.remote(runs, str(out / "vocabulary" / "vocabulary.npz"),
+                                          self.options))
+        logger.info("fleet: vocabulary of %d words from %d descriptors of %d drives "
+                    "(%d CF entries) in %.1f s", vocabulary["words"],
+                    vocabulary["descriptors"], len(runs), vocabulary["entries"],
+                    vocabulary["seconds"])
+        reindex = ray.remote(max_retries=self.fleet.max_retries)(reindex_map)
+        first = runs[0]
+        ray.get(reindex.remote(first, first, vocabulary["path"], str(out / "base")))
+        return vocabulary, out / "base"
+
     # ---------------------------------------------------------------------------- merge
     def _merge(self, ray, gpus: int, out: Path, names: list[str], bag_of: dict[str, str],
-               sessions: dict, dropped: list, base_map) -> tuple[list, Path | None]:
+               sessions: dict, dropped: list, start, external: bool
+               ) -> tuple[list, Path | None]:
+        """Each drive merged in turn into ``start`` (the base map, or the first drive's map
+        re-indexed); with an ``external`` base map every drive joins it."""
         order = [n for n in names if n in sessions]
         if not order:
             return [], None
-        current = Path(base_map) if base_map is not None else Path(sessions[order[0]]["run"])
-        todo = order if base_map is not None else order[1:]
+        current = Path(start)
+        todo = order if external else order[1:]
         task = ray.remote(num_gpus=gpus, max_retries=self.fleet.max_retries)(merge_session)
         merges = []
         for k, name in enumerate(todo, start=1):
@@ -215,6 +304,8 @@ class FleetMapper:
             logger.info("fleet: merged %d/%d (%s): %d of %d samples localized, %d points",
                         k, len(todo), name, result["localized"], result["new_samples"],
                         result["points"])
+        if not merges and not external:  # one drive: its own map is the fleet's
+            return merges, Path(sessions[order[0]]["run"])
         return merges, current
 
     def _trajectories(self, out: Path, final: Path | None, names: list[str], sessions: dict,

@@ -176,13 +176,15 @@ class VocabularyTree:
             tree.set_idf(documents)
         return tree
 
-    def set_idf(self, documents: list[np.ndarray]) -> None:
-        """IDF = log(N / n_w) over the images (descriptor sets) the vocabulary is used for."""
-        counts = np.zeros(self.num_words)
+    def set_idf(self, documents) -> None:
+        """IDF = log(N / n_w) over the images (descriptor sets) the vocabulary is used for;
+        ``documents`` may be any iterable (streamed: one image in memory at a time)."""
+        counts, images = np.zeros(self.num_words), 0
         for descriptors in documents:
+            images += 1
             if len(descriptors):
                 counts[np.unique(self.quantize(descriptors))] += 1
-        self.idf = np.log(max(len(documents), 1) / np.maximum(counts, 1)).astype(np.float32)
+        self.idf = np.log(max(images, 1) / np.maximum(counts, 1)).astype(np.float32)
 
     # --------------------------------------------------------------------------- quantize
     def quantize(self, descriptors: np.ndarray) -> np.ndarray:
