@@ -139,3 +139,16 @@ def test_a_killed_worker_is_retried_and_resumes(fleet_run):
     assert "keyframes" not in ran and ran[0] == "features", ran
     assert "keyframes" in report["sessions"]["00_bag"]["stages_run"]
     assert set(report["sessions"]) == set(NAMES[:3])
+
+
+def test_fleet_refuses_an_out_that_is_not_a_fleet_directory(tmp_path, capsys):
+    from cusfm_ros.cli.main import main
+
+    (tmp_path / "notes.txt").write_text("mine")
+    assert main(["fleet", str(tmp_path / "missing_bag"), "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith("is not empty and not a fleet directory; choose a new or empty "
+                            "directory (nothing in it is deleted)")
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+    assert main(["fleet", "x", "--out", str(tmp_path / "notes.txt")]) == 1
+    assert "is a file" in capsys.readouterr().err

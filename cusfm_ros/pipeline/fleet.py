@@ -199,6 +199,11 @@ class FleetMapper:
         if not bags:
             raise ConfigError("fleet: no bags given")
         out = Path(out_dir)
+        if out.exists() and not out.is_dir():
+            raise ConfigError(f"--out {out} is a file; give a directory for the fleet")
+        if out.is_dir() and any(out.iterdir()) and not (out / "sessions").is_dir():
+            raise ConfigError(f"--out {out} is not empty and not a fleet directory; choose a "
+                              "new or empty directory (nothing in it is deleted)")
         out.mkdir(parents=True, exist_ok=True)
         (out / "report.json").unlink(missing_ok=True)
         started = time.perf_counter()
