@@ -269,15 +269,22 @@ class FleetMapper:
         it: the merges start from there, so the merged map retrieves with it."""
         runs = [sessions[n]["run"] for n in names if n in sessions]
         build = ray.remote(max_retries=self.fleet.max_retries)(build_fleet_vocabulary)
-        vocabulary = ray.get(build.remote(runs, str(out / "vocabulary" / "vocabulary.npz"),
-                                          self.options))
+        try:
+            vocabulary = ray.get(build.remote(runs, str(out / "vocabulary" / "vocabulary.npz"),
+                                              self.options))
+        except Exception as error:  # noqa: BLE001 - Ray wraps the task's error
+            raise CusfmError(f"fleet: the shared vocabulary failed: {_reason(error)}") from None
         logger.info("fleet: vocabulary of %d words from %d descriptors of %d drives "
                     "(%d CF entries) in %.1f s", vocabulary["words"],
                     vocabulary["descriptors"], len(runs), vocabulary["entries"],
                     vocabulary["seconds"])
         reindex = ray.remote(max_retries=self.fleet.max_retries)(reindex_map)
         first = runs[0]
-        ray.get(reindex.remote(first, first, vocabulary["path"], str(out / "base")))
+        try:
+            ray.get(reindex.remote(first, first, vocabulary["path"], str(out / "base")))
+        except Exception as error:  # noqa: BLE001 - Ray wraps the task's error
+            raise CusfmError(f"fleet: re-indexing the first drive's map failed: "
+                             f"{_reason(error)}") from None
         return vocabulary, out / "base"
 
     # ---------------------------------------------------------------------------- merge
