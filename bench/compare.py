@@ -38,10 +38,8 @@ from pathlib import Path
 # process's size when it forks, so this process stays small and everything else runs in
 # children (inputs: compare_inputs.py, systems and their scoring: compare_systems.py).
 HERE = Path(__file__).resolve().parent
-INPUTS = ("kitti", "street", "indoor")
-OURS = ("ours_view_graph_sift", "ours_radius_sift", "ours_view_graph_aliked")
-SYSTEMS = (*OURS, "colmap_incremental", "colmap_global", "colmap_incremental_priors",
-           "colmap_global_rig")
+sys.path.insert(0, str(HERE))
+from compare_names import INPUTS, OURS, SYSTEMS  # noqa: E402 - the bench folder is no package
 
 logger = logging.getLogger("compare")
 DEFAULT_SYSTEMS = ("ours_view_graph_sift", "ours_radius_sift", "colmap_incremental",
@@ -54,12 +52,20 @@ OUR_STAGES = {"keyframes": ("keyframes",), "extraction": ("features",),
               "export": ("export", "map")}
 
 
-def prepare(name: str, root: Path, frames: int, size: tuple[int, int]) -> Path:
-    """The input's ``input.json`` (made once, in a child process)."""
+def prepare(name: str, root: Path, frames: int, size: tuple[int, int]) -> tuple[Path, dict]:
+    """The input's ``input.json`` (made once, in a child process) and its content."""
     command = [sys.executable, str(HERE / "compare_inputs.py"), name, str(root), str(frames),
                str(size[0]), str(size[1])]
     done = subprocess.run(command, check=True, stdout=subprocess.PIPE, text=True)
-    return Path(done.stdout.strip().splitlines()[-1])
+    path = Path(done.stdout.strip().splitlines()[-1])
+    return path, json.loads(path.read_text())
+
+
+def save(out: Path, stem: str, form: str, header: str, rows: list[dict], text: str) -> None:
+    """``OUT/<stem>.json`` (``form``, header, rows) and ``OUT/<stem>.md``, after every run."""
+    (out / f"{stem}.json").write_text(json.dumps({"format": form, "header": header,
+                                                  "rows": rows}, indent=1) + "\n")
+    (out / f"{stem}.md").write_text(text)
 
 
 def run_system(system: str, spec_path: Path, work: Path, args) -> dict:
@@ -178,8 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name in args.inputs:
         for frames in ([51] if name == "kitti" else args.frames):
-            spec_path = prepare(name, out / "inputs", frames, args.image_size)
-            spec = json.loads(spec_path.read_text())
+            spec_path, spec = prepare(name, out / "inputs", frames, args.image_size)
             for system in args.systems:
                 logger.info("compare: %s on %s (%d frames)", system, name, spec["frames"])
                 result = run_system(system, spec_path, out / "runs" / f"{name}_{frames}" /
@@ -187,10 +192,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(row(result, spec))
                 logger.info("compare: %s: %.1f s, %s", system, result["seconds"],
                             result.get("failed") or f"{rows[-1]['registered']} registered")
-                (out / "compare.json").write_text(json.dumps(
-                    {"format": "cusfm_compare/1", "header": header, "rows": rows}, indent=1)
-                    + "\n")
-                (out / "compare.md").write_text(markdown(rows, header))
+                save(out, "compare", "cusfm_compare/1", header, rows, markdown(rows, header))
     print(markdown(rows, header))
     return 0
 

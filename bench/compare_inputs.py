@@ -29,13 +29,10 @@ from cusfm_ros.io.bags.reader import BagReader
 from cusfm_ros.io.bags.rig_samples import iter_rig_samples, scan_cameras
 from cusfm_ros.io.tum import read_tum, write_tum
 
+from compare_names import SCENES  # run as a script: its folder is on the path
+
 KITTI = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "kitti06_stereo_51"
-SCENES = {"street": ("street", "stereo"), "indoor": ("indoor", "stereo4")}
 logger = logging.getLogger("compare")
-
-
-def input_names() -> tuple[str, ...]:
-    return ("kitti", *SCENES)
 
 
 def _bag_of(name: str, frames: int, width: int, height: int, folder: Path) -> None:

@@ -31,12 +31,7 @@ from cusfm_ros.core.evaluation import AteOptions, absolute_trajectory_error
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.io.tum import read_tum, write_tum
 
-OURS = {"ours_view_graph_sift": ("view_graph", "sift", "knn"),
-        "ours_radius_sift": ("radius", "sift", "knn"),
-        "ours_view_graph_aliked": ("view_graph", "aliked", "lightglue")}
-COLMAP = ("colmap_incremental", "colmap_global", "colmap_incremental_priors",
-          "colmap_global_rig")
-SYSTEMS = (*OURS, *COLMAP)
+from compare_names import COLMAP, OURS, SYSTEMS  # run as a script: its folder is on the path
 
 
 def _rig_from_cam(spec: dict, name: str) -> np.ndarray:

@@ -14,7 +14,6 @@ that says so.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -57,18 +56,15 @@ def main(argv: list[str] | None = None) -> int:
     system = f"ours_view_graph_{args.features}"
     rows = []
     for frames in args.frames:
-        spec_path = compare.prepare("street", out / "inputs", frames, args.image_size)
-        spec = json.loads(spec_path.read_text())
+        spec_path, spec = compare.prepare("street", out / "inputs", frames, args.image_size)
         for device in args.devices:
             run = argparse.Namespace(device=device, max_keypoints=args.max_keypoints,
                                      time_limit_s=args.time_limit_s)
             result = compare.run_system(system, spec_path, out / "runs" / f"{frames}_{device}",
                                         run)
             rows.append({**compare.row(result, spec), "device": device})
-            (out / "gpu.json").write_text(json.dumps(
-                {"format": "cusfm_gpu_bench/1", "header": header, "rows": rows}, indent=1)
-                + "\n")
-            (out / "gpu.md").write_text(markdown(rows, header))
+            compare.save(out, "gpu", "cusfm_gpu_bench/1", header, rows,
+                         markdown(rows, header))
     print(markdown(rows, header))
     return 0
 

@@ -1,0 +1,13 @@
+"""The names ``bench/compare.py`` and its children share (standard library only: the driver
+imports it and must stay small, see compare.py)."""
+
+SCENES = {"street": ("street", "stereo"), "indoor": ("indoor", "stereo4")}
+"""Simulator inputs: name -> (scene, rig)."""
+INPUTS = ("kitti", *SCENES)
+OURS = {"ours_view_graph_sift": ("view_graph", "sift", "knn"),
+        "ours_radius_sift": ("radius", "sift", "knn"),
+        "ours_view_graph_aliked": ("view_graph", "aliked", "lightglue")}
+"""Our variants: name -> (pair selection, extractor, matcher)."""
+COLMAP = ("colmap_incremental", "colmap_global", "colmap_incremental_priors",
+          "colmap_global_rig")
+SYSTEMS = (*OURS, *COLMAP)
