@@ -122,14 +122,10 @@ def build_fleet_vocabulary(session_dirs: list[str], path: str, options) -> dict:
     """A Ray task: one vocabulary over every drive, grown incrementally — each drive's
     descriptors streamed into one BIRCH CF tree (memory follows the tree's entries, not the
     fleet's descriptors), refined into the vocabulary tree, IDF from a second stream."""
-    from cusfm_ros.core.retrieval.birch import BirchOptions, BirchVocabularyBuilder
-    from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions
     from cusfm_ros.io.vocabulary_file import save_vocabulary
+    from cusfm_ros.pipeline.stages.vocabulary import birch_builder
 
-    o = options.vocabulary
-    builder = BirchVocabularyBuilder(BirchOptions(threshold=o.birch_threshold),
-                                     VocabularyOptions(o.branching, o.depth, seed=options.seed,
-                                                       workers=o.workers))
+    builder = birch_builder(options.vocabulary, options.seed)
     started = time.perf_counter()
     for descriptors in _descriptors(session_dirs):
         builder.insert(descriptors)
@@ -219,7 +215,7 @@ class FleetMapper:
                                         start, base_map is not None)
         finally:
             ray.shutdown()
-        trajectories = self._trajectories(out, final, names, sessions, dropped, base_map)
+        trajectories = self._trajectories(out, final, names, sessions, dropped)
         report = {"format": "cusfm_fleet_report/1",
                   "status": "complete" if final is not None else "failed",
                   "bags": bag_of, "base_map": None if base_map is None else str(base_map),
@@ -321,7 +317,7 @@ class FleetMapper:
         return merges, current
 
     def _trajectories(self, out: Path, final: Path | None, names: list[str], sessions: dict,
-                      dropped: list, base_map) -> dict[str, str]:
+                      dropped: list) -> dict[str, str]:
         """Each drive's poses in the final map: its stamps picked out of the map's poses
         (drives never share stamps: map update refuses overlapping ones)."""
         if final is None:

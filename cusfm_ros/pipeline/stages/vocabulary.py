@@ -44,6 +44,17 @@ class VocabularyStageOptions:
             raise ConfigError(f"birch_threshold must be > 0, got {self.birch_threshold}")
 
 
+def _tree_options(options: VocabularyStageOptions, seed: int) -> VocabularyOptions:
+    return VocabularyOptions(options.branching, options.depth, seed=seed,
+                             workers=options.workers)
+
+
+def birch_builder(options: VocabularyStageOptions, seed: int = 0) -> BirchVocabularyBuilder:
+    """An empty BIRCH CF tree with these options (fed one image at a time, then solved)."""
+    return BirchVocabularyBuilder(BirchOptions(threshold=options.birch_threshold),
+                                  _tree_options(options, seed))
+
+
 def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOptions,
                      seed: int = 0) -> tuple[VocabularyTree, BirchVocabularyBuilder | None]:
     """A vocabulary over per-image descriptor arrays (and the BIRCH builder for ``birch``)."""
@@ -54,15 +65,13 @@ def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOption
     stacked = np.concatenate(documents)
     if len(stacked) > options.max_descriptors:
         stacked = stacked[rng.choice(len(stacked), options.max_descriptors, replace=False)]
-    vocab_options = VocabularyOptions(options.branching, options.depth, seed=seed,
-                                      workers=options.workers)
+    vocab_options = _tree_options(options, seed)
     logger.info("vocabulary: %s over %d of %d descriptors from %d images (K=%d, L=%d)",
                 options.method, len(stacked), total, len(documents), options.branching,
                 options.depth)
     if options.method == "kmeans":
         return VocabularyTree.build(stacked, vocab_options, documents=documents), None
-    builder = BirchVocabularyBuilder(BirchOptions(threshold=options.birch_threshold),
-                                     vocab_options)
+    builder = birch_builder(options, seed)
     for document in documents:  # streamed: memory follows the CF entries
         builder.insert(document)
     return builder.solve(documents), builder
