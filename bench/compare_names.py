@@ -6,7 +6,8 @@ SCENES = {"street": ("street", "stereo"), "indoor": ("indoor", "stereo4")}
 INPUTS = ("kitti", *SCENES)
 OURS = {"ours_view_graph_sift": ("view_graph", "sift", "knn"),
         "ours_radius_sift": ("radius", "sift", "knn"),
-        "ours_view_graph_aliked": ("view_graph", "aliked", "lightglue")}
+        "ours_view_graph_aliked": ("view_graph", "aliked", "lightglue"),
+        "ours_view_graph_xfeat": ("view_graph", "xfeat", "lighterglue")}
 """Our variants: name -> (pair selection, extractor, matcher)."""
 COLMAP = ("colmap_incremental", "colmap_global", "colmap_incremental_priors",
           "colmap_global_rig")

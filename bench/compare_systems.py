@@ -6,9 +6,10 @@ of the reference camera's ``world_from_cam``, the path every system is scored on
 ``registered`` (images of the reference camera with a pose), ``models`` (fragments), and for
 ours the GPU peak memory. Systems:
 
-- ``ours_view_graph_sift`` / ``ours_radius_sift`` / ``ours_view_graph_aliked``: ``cusfm map``
-  (SIFT + k-NN or ALIKED + LightGlue; view-graph or radius pair selection), from the bag's
-  odometry, both cameras (the rig);
+- ``ours_view_graph_sift`` / ``ours_radius_sift`` / ``ours_view_graph_aliked`` /
+  ``ours_view_graph_xfeat``: ``cusfm map`` (SIFT + k-NN, ALIKED + LightGlue or XFeat +
+  LighterGlue; view-graph or radius pair selection), from the bag's odometry, both cameras
+  (the rig);
 - ``colmap_incremental`` / ``colmap_global``: pycolmap, the reference camera's images, SIFT,
   sequential matching (the paper's configuration), incremental or global (GLOMAP) mapper;
 - ``colmap_incremental_priors``: the same with the bag's odometry as position priors

@@ -4,7 +4,7 @@ stereo street (2 laps, seed 0) at each frame count, on each device, one process 
 memory, and the ATE, so that speed never hides a worse map.
 
     python bench/gpu.py --out /tmp/gpu [--frames 100 300 1000] [--devices cuda cpu]
-                        [--features sift|aliked] [--time-limit-s 1800]
+                        [--features sift|aliked|xfeat] [--time-limit-s 1800]
 
 Installs nothing: run it where ``make test`` runs, on a machine with a GPU. Writes
 ``OUT/gpu.json`` and ``OUT/gpu.md`` after every run. A run past the time limit is a row
@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", nargs="+", type=int, default=[100, 300, 1000])
     parser.add_argument("--devices", nargs="+", choices=("cuda", "cpu"), default=["cuda",
                                                                                  "cpu"])
-    parser.add_argument("--features", choices=("sift", "aliked"), default="aliked")
+    parser.add_argument("--features", choices=("sift", "aliked", "xfeat"), default="aliked")
     parser.add_argument("--max-keypoints", type=int, default=2048)
     parser.add_argument("--time-limit-s", type=float, default=1800.0)
     parser.add_argument("--image-size", type=int, nargs=2, default=(1241, 376),

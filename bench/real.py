@@ -7,7 +7,7 @@ sequential matching, incremental and global mappers). ATE RMSE against the groun
 SE(3)-aligned for ours (metric stereo), Sim(3) for everyone, the path-length error and wall
 seconds. Prints a Markdown table and writes it to OUT/real.md.
 
-    python bench/real.py --out /tmp/real [--features sift|aliked] [--max-keypoints 2048]
+    python bench/real.py --out /tmp/real [--features sift|aliked|xfeat] [--max-keypoints 2048]
                          [--skip-colmap]
 """
 
@@ -102,7 +102,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True)
-    parser.add_argument("--features", choices=("sift", "aliked"), default="sift")
+    parser.add_argument("--features", choices=("sift", "aliked", "xfeat"), default="sift")
     parser.add_argument("--max-keypoints", type=int, default=2048)
     parser.add_argument("--skip-colmap", action="store_true")
     args = parser.parse_args()

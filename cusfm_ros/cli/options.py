@@ -44,7 +44,7 @@ def add_feature_arguments(parser: argparse.ArgumentParser) -> None:
     """Feature switches; unset ones keep the preset's value, then the defaults."""
     parser.add_argument("--features", choices=EXTRACTORS, default=None, help="default aliked")
     parser.add_argument("--matcher", choices=MATCHERS, default=None,
-                        help="default: lightglue for aliked, knn for sift")
+                        help="default: lightglue for aliked, lighterglue for xfeat, knn for sift")
     parser.add_argument("--max-keypoints", type=int, default=None, help="default 2048")
     parser.add_argument("--resize-max-px", type=int, default=None)
     parser.add_argument("--device", choices=DEVICES, default=None)

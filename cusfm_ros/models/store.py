@@ -19,7 +19,8 @@ logger = logging.getLogger(__name__)
 MANIFEST = "manifest.json"
 OPSET = 18
 MODEL_FILES = {"aliked_dense": "aliked_dense.onnx", "aliked_sddh": "aliked_sddh.onnx",
-               "lightglue": "aliked_lightglue.onnx"}
+               "lightglue": "aliked_lightglue.onnx", "xfeat": "xfeat.onnx",
+               "lighterglue": "xfeat_lighterglue.onnx"}
 
 
 class ModelCacheError(CusfmError):

@@ -7,15 +7,20 @@ provider).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from cusfm_ros.core.features.aliked import MIN_IMAGE_PX, AlikedOptions
-from cusfm_ros.core.features.lightglue import (LightGlueOptions, filter_matches,
-                                               normalize_keypoints)
+from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LightGlueOptions,
+                                               LighterGlueMatcher, check_descriptors,
+                                               filter_matches, normalize_keypoints)
 from cusfm_ros.core.features.types import Features, FeatureError, Matches, prepare_image
+from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, features_in_image,
+                                           network_input)
 from cusfm_ros.errors import ConfigError
-from cusfm_ros.models.build import load_aliked, load_lightglue
+from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
 from cusfm_ros.models.nets.aliked import detect_keypoints
+from cusfm_ros.models.nets.xfeat import detect_and_describe
 
 
 def _device(name: str):
@@ -68,22 +73,63 @@ class TorchAlikedExtractor:
                         descriptors.cpu().numpy().astype(np.float32), (w, h))
 
 
-class TorchLightGlueMatcher:
-    name = "lightglue"
+class TorchXFeatExtractor:
+    name = "xfeat"
+    descriptor_dim = DESCRIPTOR_DIM
 
-    def __init__(self, options: LightGlueOptions = LightGlueOptions()) -> None:
+    def __init__(self, options: XFeatOptions = XFeatOptions()) -> None:
         import torch
 
         self.torch = torch
         self.options = options
         self.device = _device(options.device)
-        self.model = load_lightglue().to(self.device)
+        self.model = load_xfeat().to(self.device)
+
+    def config(self) -> dict:
+        return {"name": self.name, "backend": "torch", **self.options.__dict__}
+
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
+        torch = self.torch
+        grey, factor = network_input(image)
+        h, w = np.asarray(image).shape[:2]
+        if mask is not None and np.asarray(mask).shape[:2] != (h, w):
+            raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image is {(h, w)}")
+        with torch.inference_mode():
+            maps = self.model(torch.from_numpy(grey).to(self.device))
+            allowed = None
+            if mask is not None:
+                small = (np.asarray(mask) > 0).astype(np.uint8)
+                small = cv2.resize(small, (grey.shape[3], grey.shape[2]),
+                                   interpolation=cv2.INTER_NEAREST) > 0
+                allowed = torch.from_numpy(small).to(self.device)
+            keypoints, scores, descriptors = detect_and_describe(
+                *maps, self.options.detection_threshold, self.options.max_keypoints, allowed)
+        return features_in_image(keypoints.cpu().numpy(), scores.cpu().numpy(),
+                                 descriptors.cpu().numpy(), factor, (w, h))
+
+
+class TorchLightGlueMatcher:
+    WEIGHTS = {"lightglue": ("aliked-lightglue", LightGlueMatcher),
+               "lighterglue": ("xfeat-lighterglue", LighterGlueMatcher)}
+
+    def __init__(self, options: LightGlueOptions = LightGlueOptions(),
+                 name: str = "lightglue") -> None:
+        import torch
+
+        weights, onnx_twin = self.WEIGHTS[name]
+        self.name, self.title = name, onnx_twin.title
+        self.extractor, self.descriptor_dim = onnx_twin.extractor, onnx_twin.descriptor_dim
+        self.torch = torch
+        self.options = options
+        self.device = _device(options.device)
+        self.model = load_lightglue(weights).to(self.device)
 
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
 
     def match(self, features0: Features, features1: Features) -> Matches:
         torch = self.torch
+        check_descriptors(self, features0, features1)
         if len(features0) < 2 or len(features1) < 2:
             return Matches.empty()
         with torch.inference_mode():

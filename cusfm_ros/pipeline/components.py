@@ -4,13 +4,14 @@ them (ONNX models are built on first use).
 YAML::
 
     features:
-      extractor: {name: aliked, aliked: {max_keypoints: 2048, ...}, sift: {...}}
-      matcher:   {name: lightglue, lightglue: {filter_threshold: 0.1, ...}, knn: {...}}
+      extractor: {name: aliked, aliked: {max_keypoints: 2048, ...}, sift: {...}, xfeat: {...}}
+      matcher:   {name: lightglue, lightglue: {filter_threshold: 0.1, ...}, knn: {...},
+                  lighterglue: {...}}
       backend: auto
       model_dir: null
 
-Every knob of ``AlikedOptions``, ``SiftOptions``, ``LightGlueOptions`` and ``KnnOptions`` is
-reachable; ``device`` is set once at the top level and handed down.
+Every knob of ``AlikedOptions``, ``SiftOptions``, ``XFeatOptions``, ``LightGlueOptions`` and
+``KnnOptions`` is reachable; ``device`` is set once at the top level and handed down.
 """
 
 from __future__ import annotations
@@ -20,16 +21,20 @@ from dataclasses import dataclass, field, replace
 
 from cusfm_ros.core.features.aliked import AlikedExtractor, AlikedOptions
 from cusfm_ros.core.features.knn import KnnMatcher, KnnOptions
-from cusfm_ros.core.features.lightglue import LightGlueMatcher, LightGlueOptions
+from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LightGlueOptions,
+                                               LighterGlueMatcher)
 from cusfm_ros.core.features.onnx_session import has_gpu_provider
 from cusfm_ros.core.features.sift import SiftExtractor, SiftOptions
+from cusfm_ros.core.features.xfeat import XFeatExtractor, XFeatOptions
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.store import ensure_models
 from cusfm_ros.pipeline.config import options_as_dict
 
 logger = logging.getLogger(__name__)
-EXTRACTORS = ("aliked", "sift")
-MATCHERS = ("lightglue", "knn")
+EXTRACTORS = ("aliked", "sift", "xfeat")
+MATCHERS = ("lightglue", "knn", "lighterglue")
+LEARNED_MATCHER_FOR = {"lightglue": "aliked", "lighterglue": "xfeat"}
+"""A learned matcher -> the extractor its weights were trained on."""
 BACKENDS = ("auto", "onnx", "torch")
 DEVICES = ("auto", "cpu", "cuda")
 
@@ -56,9 +61,10 @@ class _Choice:
 @dataclass(frozen=True)
 class ExtractorOptions(_Choice):
     name: str = "aliked"
-    """``aliked`` (learned, ONNX) or ``sift`` (OpenCV)."""
+    """``aliked`` (learned, ONNX), ``xfeat`` (learned, CPU-fast, ONNX) or ``sift`` (OpenCV)."""
     aliked: AlikedOptions = field(default_factory=AlikedOptions)
     sift: SiftOptions = field(default_factory=SiftOptions)
+    xfeat: XFeatOptions = field(default_factory=XFeatOptions)
 
     def __post_init__(self) -> None:
         if self.name not in EXTRACTORS:
@@ -68,9 +74,11 @@ class ExtractorOptions(_Choice):
 @dataclass(frozen=True)
 class MatcherOptions(_Choice):
     name: str = "lightglue"
-    """``lightglue`` (for ALIKED) or ``knn`` (nearest neighbours, ratio test)."""
+    """``lightglue`` (for ALIKED), ``lighterglue`` (for XFeat) or ``knn`` (nearest neighbours,
+    ratio test)."""
     lightglue: LightGlueOptions = field(default_factory=LightGlueOptions)
     knn: KnnOptions = field(default_factory=KnnOptions)
+    lighterglue: LightGlueOptions = field(default_factory=LightGlueOptions)
 
     def __post_init__(self) -> None:
         if self.name not in MATCHERS:
@@ -90,9 +98,11 @@ class FeatureOptions:
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
             raise ConfigError(f"unknown backend {self.backend!r} (use {', '.join(BACKENDS)})")
-        if self.matcher.name == "lightglue" and self.extractor.name != "aliked":
-            raise ConfigError("the shipped LightGlue weights are for ALIKED; use --matcher knn "
-                              "with SIFT")
+        trained_on = LEARNED_MATCHER_FOR.get(self.matcher.name)
+        if trained_on and self.extractor.name != trained_on:
+            raise ConfigError(f"the shipped {self.matcher.name} weights are for "
+                              f"{trained_on}, not {self.extractor.name}; use --matcher knn "
+                              f"with {self.extractor.name} (or --features {trained_on})")
 
     def use_torch(self, device: str) -> bool:
         if self.backend == "torch":
@@ -104,6 +114,13 @@ def make_extractor(options: FeatureOptions, device: str = "auto"):
     extractor = options.extractor
     if extractor.name == "sift":
         return SiftExtractor(extractor.sift)
+    if extractor.name == "xfeat":
+        xfeat = replace(extractor.xfeat, device=device)
+        if options.use_torch(device):
+            from cusfm_ros.models.torch_backend import TorchXFeatExtractor
+
+            return TorchXFeatExtractor(xfeat)
+        return XFeatExtractor(ensure_models(options.model_dir), xfeat)
     aliked = replace(extractor.aliked, device=device)
     if options.use_torch(device):
         from cusfm_ros.models.torch_backend import TorchAlikedExtractor
@@ -116,12 +133,13 @@ def make_matcher(options: FeatureOptions, device: str = "auto"):
     matcher = options.matcher
     if matcher.name == "knn":
         return KnnMatcher(matcher.knn)
-    lightglue = replace(matcher.lightglue, device=device)
+    learned = replace(matcher.selected, device=device)
     if options.use_torch(device):
         from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
 
-        return TorchLightGlueMatcher(lightglue)
-    return LightGlueMatcher(ensure_models(options.model_dir), lightglue)
+        return TorchLightGlueMatcher(learned, matcher.name)
+    onnx = LighterGlueMatcher if matcher.name == "lighterglue" else LightGlueMatcher
+    return onnx(ensure_models(options.model_dir), learned)
 
 
 class LazyMatcher:

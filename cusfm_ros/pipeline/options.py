@@ -78,7 +78,8 @@ SWITCHES: dict[str, tuple[str, ...]] = {
     "min_rotation_deg": ("keyframes.min_rotation_deg",),
     "features": ("features.extractor.name",), "matcher": ("features.matcher.name",),
     "max_keypoints": ("features.extractor.aliked.max_keypoints",
-                      "features.extractor.sift.max_keypoints"),
+                      "features.extractor.sift.max_keypoints",
+                      "features.extractor.xfeat.max_keypoints"),
     "resize_max_px": ("features.extractor.aliked.resize_max_px",
                       "features.extractor.sift.resize_max_px"),
     "backend": ("features.backend",), "model_dir": ("features.model_dir",),
@@ -144,11 +145,12 @@ def _build(data: dict[str, Any], where: str):
         raise ConfigError(f"{where}: {exc}") from None
 
 
-DEFAULT_MATCHER = {"aliked": "lightglue", "sift": "knn"}
+DEFAULT_MATCHER = {"aliked": "lightglue", "sift": "knn", "xfeat": "lighterglue"}
 
 
 def _matcher_default(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
-    """An extractor chosen without a matcher gets its own (LightGlue's weights are ALIKED's):
+    """An extractor chosen without a matcher gets its own (LightGlue's weights are ALIKED's,
+    LighterGlue's XFeat's):
     one named in ``overrides`` replaces the preset's matcher; one in the preset alone fills
     in a missing matcher name."""
     name = overrides.get("features.extractor.name")

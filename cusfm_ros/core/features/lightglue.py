@@ -1,4 +1,5 @@
-"""LightGlue matching through ONNX Runtime (all layers; no early exit in the graph)."""
+"""LightGlue matching through ONNX Runtime (all layers; no early exit in the graph): the ALIKED
+weights (``lightglue``) and XFeat's LighterGlue (``lighterglue``, a 96-d, 6-layer LightGlue)."""
 
 from __future__ import annotations
 
@@ -41,23 +42,32 @@ def filter_matches(scores: np.ndarray, threshold: float) -> Matches:
                    confidence[index0].astype(np.float32))
 
 
+def check_descriptors(matcher, features0: Features, features1: Features) -> None:
+    for f in (features0, features1):
+        if f.descriptors.shape[1] != matcher.descriptor_dim:
+            raise FeatureError(f"{matcher.title} needs {matcher.descriptor_dim}-d descriptors "
+                               f"({matcher.extractor}'s), got {f.descriptors.shape[1]}-d; use "
+                               "--matcher knn for them")
+
+
 class LightGlueMatcher:
     name = "lightglue"
+    title = "LightGlue (ALIKED weights)"
+    extractor = "aliked"
+    descriptor_dim = 128
+    model_file = "aliked_lightglue.onnx"
 
     def __init__(self, model_dir: str | Path, options: LightGlueOptions = LightGlueOptions()
                  ) -> None:
         self.options = options
-        self.session = make_session(Path(model_dir) / "aliked_lightglue.onnx", options.device,
+        self.session = make_session(Path(model_dir) / self.model_file, options.device,
                                     options.threads)
 
     def config(self) -> dict:
         return {"name": self.name, **self.options.__dict__}
 
     def match(self, features0: Features, features1: Features) -> Matches:
-        for f in (features0, features1):
-            if f.descriptors.shape[1] != 128:
-                raise FeatureError(f"LightGlue (ALIKED weights) needs 128-d descriptors, got "
-                                   f"{f.descriptors.shape[1]}-d; use --matcher knn for them")
+        check_descriptors(self, features0, features1)
         if len(features0) < 2 or len(features1) < 2:
             return Matches.empty()  # nothing to attend over
         feeds = {
@@ -68,3 +78,13 @@ class LightGlueMatcher:
         }
         scores = self.session.run(None, feeds)[0][0]
         return filter_matches(scores, self.options.filter_threshold)
+
+
+class LighterGlueMatcher(LightGlueMatcher):
+    """XFeat's matcher: the same graph shape with the LighterGlue weights."""
+
+    name = "lighterglue"
+    title = "LighterGlue (XFeat weights)"
+    extractor = "xfeat"
+    descriptor_dim = 64
+    model_file = "xfeat_lighterglue.onnx"
