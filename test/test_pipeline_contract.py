@@ -356,3 +356,31 @@ def test_fingerprints_read_only_the_chosen_component():
     path = "features.extractor"
     assert option_value(base, path) == option_value(other_aliked, path)
     assert option_value(base, path) != option_value(other_sift, path)
+
+
+def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path):
+    """Loops, loop measurement and pair matching run on CPU threads; one thread and three
+    give the same loops, pose graph and verified matches."""
+    from cusfm_ros.io.feature_store import FeatureStore
+
+    steps = ["--steps", "keyframes", "features", "vocabulary", "loops", "pose_graph", "pairs",
+             "matching"]
+    runs = {}
+    for threads in (1, 3):
+        runs[threads] = tmp_path / f"threads{threads}"
+        assert main(["map", str(loop_bag / "bag"), "--out", str(runs[threads]),
+                     "--cpu-threads", str(threads), *steps, *FAST]) == 0
+    one, three = RunDir(runs[1]), RunDir(runs[3])
+    assert json.loads(one.loops.read_text())["loops"], "no loops: the test would prove nothing"
+    assert one.loops.read_bytes() == three.loops.read_bytes()
+    assert one.pose_graph_poses.read_bytes() == three.pose_graph_poses.read_bytes()
+    pairs = [line.split() for line in one.pairs.read_text().splitlines()]
+    with FeatureStore(one.verified_matches, {}, read_only=True) as a, \
+            FeatureStore(three.verified_matches, {}, read_only=True) as b:
+        for name0, name1 in pairs:
+            assert np.array_equal(a.matches(name0, name1).indices,
+                                  b.matches(name0, name1).indices)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["map", "bag", "--out", "x", "--cpu-threads", "many"])
+    assert main(["map", str(loop_bag / "bag"), "--out", str(tmp_path / "bad"),
+                 "--cpu-threads", "-1"]) == 1

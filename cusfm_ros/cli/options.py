@@ -48,6 +48,9 @@ def add_feature_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-keypoints", type=int, default=None, help="default 2048")
     parser.add_argument("--resize-max-px", type=int, default=None)
     parser.add_argument("--device", choices=DEVICES, default=None)
+    parser.add_argument("--cpu-threads", type=int, default=None, metavar="N",
+                        help="threads for per-pair matching and verification (default 0: "
+                             "every core; results do not depend on it)")
     parser.add_argument("--backend", choices=BACKENDS, default=None)
     parser.add_argument("--model-dir", default=None)
 

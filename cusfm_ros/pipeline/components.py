@@ -17,6 +17,7 @@ Every knob of ``AlikedOptions``, ``SiftOptions``, ``XFeatOptions``, ``LightGlueO
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field, replace
 
 from cusfm_ros.core.features.aliked import AlikedExtractor, AlikedOptions
@@ -144,12 +145,15 @@ def make_matcher(options: FeatureOptions, device: str = "auto"):
 
 class LazyMatcher:
     """Builds the matcher on first use (loading LightGlue costs seconds; many runs reuse every
-    match from a cache and never need it)."""
+    match from a cache and never need it). Safe to call from several threads."""
 
     def __init__(self, options: FeatureOptions, device: str = "auto") -> None:
         self.options, self.device, self._matcher = options, device, None
+        self._lock = threading.Lock()
 
     def match(self, features0, features1):
         if self._matcher is None:
-            self._matcher = make_matcher(self.options, self.device)
+            with self._lock:
+                if self._matcher is None:
+                    self._matcher = make_matcher(self.options, self.device)
         return self._matcher.match(features0, features1)

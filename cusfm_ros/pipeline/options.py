@@ -1,8 +1,10 @@
 """``MapperOptions`` and the one option resolver every command and node uses.
 
-``MapperOptions`` has three top-level values set once and handed down to every component
-that needs them — ``seed`` (every random choice), ``device`` (auto | cpu | cuda) and
-``frame_type`` (rig | camera: pose graph and bundle adjustment variables) — and one section
+``MapperOptions`` has four top-level values set once and handed down to every component
+that needs them — ``seed`` (every random choice), ``device`` (auto | cpu | cuda),
+``frame_type`` (rig | camera: pose graph and bundle adjustment variables) and
+``cpu_threads`` (threads for the per-pair work; 0: every core; no result depends on it) —
+and one section
 per option dataclass that a registered stage owns (``keyframes``, ``features``, ...): the
 fields come from the registry, so a new stage's options need no edit here.
 
@@ -29,6 +31,7 @@ HANDED_DOWN = {
             "component",
     "device": "set `device` once at the top level of the options (auto | cpu | cuda)",
     "frame_type": "set `frame_type` once at the top level of the options (rig | camera)",
+    "cpu_threads": "set `cpu_threads` once at the top level of the options (0: every core)",
 }
 
 
@@ -52,6 +55,8 @@ def _validate(self) -> None:
         raise ConfigError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
     if self.seed < 0:
         raise ConfigError(f"seed must be >= 0, got {self.seed}")
+    if self.cpu_threads < 0:
+        raise ConfigError(f"cpu_threads must be >= 0 (0: every core), got {self.cpu_threads}")
     if self.mapping.optimize_extrinsics and self.frame_type != "rig":
         raise ConfigError("--optimize-extrinsics needs --frame-type rig (extrinsics are the "
                           "rig's)")
@@ -61,7 +66,8 @@ MapperOptions = dataclasses.make_dataclass(
     "MapperOptions",
     [("seed", int, dataclasses.field(default=0)),
      ("device", str, dataclasses.field(default="auto")),
-     ("frame_type", str, dataclasses.field(default="rig"))]
+     ("frame_type", str, dataclasses.field(default="rig")),
+     ("cpu_threads", int, dataclasses.field(default=0))]
     + [(name, cls, dataclasses.field(default_factory=cls)) for name, cls in SECTIONS.items()],
     frozen=True, namespace={"__post_init__": _validate, "__module__": __name__,
                             "__doc__": "Every option of the mapper (see the module doc)."})
@@ -69,6 +75,7 @@ MapperOptions = dataclasses.make_dataclass(
 SWITCHES: dict[str, tuple[str, ...]] = {
     # name (CLI dest / node parameter): option paths it sets
     "seed": ("seed",), "device": ("device",), "frame_type": ("frame_type",),
+    "cpu_threads": ("cpu_threads",),
     "image_topics": ("keyframes.image_topics",), "pose_source": ("keyframes.pose_source",),
     "odom_topic": ("keyframes.odom_topic",), "world_frame": ("keyframes.world_frame",),
     "base_frame": ("keyframes.base_frame",), "extrinsics": ("keyframes.extrinsics_file",),
@@ -135,9 +142,10 @@ def _check_reserved(data: dict[str, Any]) -> None:
 
 def _build(data: dict[str, Any], where: str):
     try:
-        unknown = sorted(set(data) - {"seed", "device", "frame_type", *SECTIONS})
+        top = ("seed", "device", "frame_type", "cpu_threads")
+        unknown = sorted(set(data) - {*top, *SECTIONS})
         if unknown:
-            raise ConfigError(f"unknown section(s) {unknown} (known: seed, device, frame_type, "
+            raise ConfigError(f"unknown section(s) {unknown} (known: {', '.join(top)}, "
                               f"{', '.join(SECTIONS)})")
         _check_reserved(data)
         return options_from_dict(MapperOptions, data, "")

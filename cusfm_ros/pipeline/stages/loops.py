@@ -3,7 +3,7 @@ time and travelled-path window, matching, essential-matrix verification ->
 ``loops/loops.json`` (``LoopRecord`` list).
 
 ``detect_loops(keyframes, features, vocabulary, matcher, options, seed)`` is the stage on
-explicit inputs.
+explicit inputs; candidates are matched and verified on CPU threads (``cpu_threads``).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import write_loops
 from cusfm_ros.io.vocabulary_file import load_vocabulary
 from cusfm_ros.pipeline.components import LazyMatcher
+from cusfm_ros.pipeline.parallel import ordered_map
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
@@ -30,22 +31,20 @@ from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_ma
 logger = logging.getLogger(__name__)
 
 
-def cached_match(cache: FeatureStore | None, matcher, name0: str, name1: str,
-                 features0: Features, features1: Features):
-    """Raw matches of a pair from ``cache`` (either order), else from ``matcher`` (stored)."""
+def cached_matches(cache: FeatureStore | None, name0: str, name1: str):
+    """Raw matches of a pair from ``cache`` (either order), or None."""
     if cache is not None and (cache.has_matches(name0, name1) or cache.has_matches(name1, name0)):
-        return cache.matches(name0, name1), False
-    matches = matcher.match(features0, features1)
-    if cache is not None:
-        cache.put_matches(name0, name1, matches)
-    return matches, True
+        return cache.matches(name0, name1)
+    return None
 
 
 def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
                  vocabulary: VocabularyTree, matcher, options: LoopOptions = LoopOptions(),
-                 seed: int = 0, cache: FeatureStore | None = None
+                 seed: int = 0, cache: FeatureStore | None = None, threads: int = 0
                  ) -> tuple[list[LoopRecord], dict]:
-    """Verified loops between keyframes (each found once, from its later image)."""
+    """Verified loops between keyframes (each found once, from its later image). Candidates
+    are matched and verified on ``threads`` CPU threads (0: every core); the result does not
+    depend on it."""
     frames = keyframes.images_in_time_order()
     database = ImageDatabase(vocabulary)
     for keyframe in frames:
@@ -53,31 +52,50 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
                      keyframe.stamp_ns)
     by_name = {k.image_name: k for k in frames}
     path_m = keyframes.travelled_path_m(frames)
+
+    def candidates():
+        """(query index, query, match, score, cached matches or None), in query order."""
+        for index, query in enumerate(frames):
+            found = database.query(
+                None, query.stamp_ns, options.top_k, options.exclude_within_s,
+                options.min_score,
+                exclude=np.abs(path_m - path_m[index]) < options.exclude_within_path_m,
+                vector=database.vector(index))  # quantized once, when added
+            for candidate in found:
+                match = by_name[candidate.image]
+                if match.stamp_ns < query.stamp_ns:  # each loop once, from its later image
+                    yield (index, query, match, float(candidate.score),
+                           cached_matches(cache, query.image_name, match.image_name))
+            yield index, query, None, 0.0, None  # the query is done (progress)
+
+    def verify(item):
+        _, query, match, _, matches = item
+        if match is None:
+            return None
+        f_query, f_match = features[query.image_name], features[match.image_name]
+        computed = matches is None
+        if computed:
+            matches = matcher.match(f_query, f_match)
+        return computed, matches, verify_pair(f_query, f_match, matches,
+                                              keyframes.rig[query.camera_name].camera,
+                                              keyframes.rig[match.camera_name].camera,
+                                              options, seed)
+
     loops, verified = [], 0
     progress = Progress("loops", len(frames), "keyframes")
-    for index, query in enumerate(frames):
-        candidates = database.query(
-            None, query.stamp_ns, options.top_k, options.exclude_within_s, options.min_score,
-            exclude=np.abs(path_m - path_m[index]) < options.exclude_within_path_m,
-            vector=database.vector(index))  # quantized once, when added
-        for candidate in candidates:
-            match = by_name[candidate.image]
-            if match.stamp_ns >= query.stamp_ns:
-                continue  # each loop is found once, from its later image
-            f_query, f_match = features[query.image_name], features[match.image_name]
-            matches, _ = cached_match(cache, matcher, query.image_name, match.image_name,
-                                      f_query, f_match)
-            verified += 1
-            result = verify_pair(f_query, f_match, matches,
-                                 keyframes.rig[query.camera_name].camera,
-                                 keyframes.rig[match.camera_name].camera, options, seed)
-            if not result.accepted:
-                continue
+    for (_, query, match, score, _), outcome in ordered_map(verify, candidates(), threads):
+        if match is None:
+            progress.step(note=f"{len(loops)} loops")
+            continue
+        computed, matches, result = outcome
+        if computed and cache is not None:
+            cache.put_matches(query.image_name, match.image_name, matches)
+        verified += 1
+        if result.accepted:
             loops.append(LoopRecord(
                 query.image_name, match.image_name, int(query.stamp_ns), int(match.stamp_ns),
-                result.inliers, result.matches, float(candidate.score),
+                result.inliers, result.matches, score,
                 Rigid3(result.rotation, result.translation_direction)))
-        progress.step(note=f"{len(loops)} loops")
     return loops, {"loops": len(loops), "verified_candidates": verified}
 
 
@@ -98,7 +116,8 @@ class LoopsStage(Stage):
             features = {k.image_name: store.features(k.image_name) for k in keyframes.keyframes}
             loops, counts = detect_loops(keyframes, features, vocabulary,
                                          LazyMatcher(options.features, options.device),
-                                         options.loops, options.seed, cache)
+                                         options.loops, options.seed, cache,
+                                         options.cpu_threads)
         write_loops(run.loops, loops, keyframes)
         logger.info("loops: %d loops from %d verified candidates in %.1f s", len(loops),
                     counts["verified_candidates"], time.perf_counter() - started)

@@ -21,7 +21,8 @@ from cusfm_ros.io.pairs_file import read_pairs
 from cusfm_ros.pipeline.components import LazyMatcher
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
-from cusfm_ros.pipeline.stages.loops import cached_match
+from cusfm_ros.pipeline.parallel import ordered_map
+from cusfm_ros.pipeline.stages.loops import cached_matches
 from cusfm_ros.pipeline.stores import (load_keyframes, open_features, open_raw_matches,
                                        open_verified)
 
@@ -43,9 +44,12 @@ class MatchingOptions:
 
 def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
                 features: FeatureStore, matcher, options: MatchingOptions, seed: int,
-                verified: FeatureStore, cache: FeatureStore | None = None) -> dict:
+                verified: FeatureStore, cache: FeatureStore | None = None,
+                threads: int = 0) -> dict:
     """Match and verify ``pairs`` (image names; ``cameras`` maps each image to its camera)
-    into ``verified``; pairs already there are kept. Returns counts."""
+    into ``verified``; pairs already there are kept. Pairs are matched and verified on
+    ``threads`` CPU threads (0: every core); reads and writes of the stores stay in this
+    thread. Returns counts."""
     unknown = [name for pair in pairs for name in pair if name not in cameras]
     if unknown:
         raise CusfmError(f"the pair list names images without a camera ({unknown[0]}); "
@@ -54,16 +58,39 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
     todo = [p for p in pairs if not verified.has_matches(*p)]
     logger.info("matching: %d pairs, %d to match", len(pairs), len(todo))
     progress = Progress("matching", len(todo), "pairs")
-    for a, b in todo:
-        features_a, features_b = features.features(a), features.features(b)  # read once
-        raw, computed = cached_match(cache, matcher, a, b, features_a, features_b)
-        matched += computed
+    loaded: dict = {}
+
+    def load(name: str):
+        """Features of an image, read once while pairs that need it are in flight."""
+        if name not in loaded:
+            loaded[name] = features.features(name)
+        return loaded[name]
+
+    def inputs():
+        for index, (a, b) in enumerate(todo):
+            if index % 64 == 0:  # keep the images of the pairs near this one only
+                near = {n for pair in todo[index:index + 256] for n in pair}
+                for name in [n for n in loaded if n not in near]:
+                    del loaded[name]
+            yield a, b, load(a), load(b), cached_matches(cache, a, b)
+
+    def match_and_verify(item):
+        a, b, features_a, features_b, raw = item
+        computed = raw is None
+        if computed:
+            raw = matcher.match(features_a, features_b)
         kept = raw
         if options.verify and len(raw):
             mask = essential_inliers(features_a.keypoints_px[raw.indices[:, 0]],
                                      features_b.keypoints_px[raw.indices[:, 1]],
                                      cameras[a], cameras[b], options.ransac_threshold_px, seed)
             kept = Matches(raw.indices[mask], raw.confidences[mask])
+        return computed, raw, kept
+
+    for (a, b, *_), (computed, raw, kept) in ordered_map(match_and_verify, inputs(), threads):
+        matched += computed
+        if computed and cache is not None:
+            cache.put_matches(a, b, raw)
         if len(kept) < options.min_inliers:
             kept, rejected = Matches.empty(), rejected + 1
         verified.put_matches(a, b, kept)
@@ -93,6 +120,7 @@ class MatchingStage(Stage):
                 open_verified(run, options, write=True, recover=context.resuming) as verified:
             counts = match_pairs(read_pairs(run.pairs), cameras, store,
                                  LazyMatcher(options.features, options.device),
-                                 options.matching, options.seed, verified, cache)
+                                 options.matching, options.seed, verified, cache,
+                                 options.cpu_threads)
         logger.info("matching: %s in %.1f s", counts, time.perf_counter() - started)
         return counts

@@ -32,7 +32,8 @@ from cusfm_ros.io.tum import write_tum
 from cusfm_ros.pipeline.components import LazyMatcher
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
-from cusfm_ros.pipeline.stages.loops import cached_match
+from cusfm_ros.pipeline.parallel import ordered_map
+from cusfm_ros.pipeline.stages.loops import cached_matches
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
 
 logger = logging.getLogger(__name__)
@@ -105,9 +106,11 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                         features: dict[str, Features], matcher,
                         options: PoseGraphOptions = PoseGraphOptions(), frame_type: str = "rig",
                         seed: int = 0, cache: FeatureStore | None = None,
-                        extra: list[LoopConstraint] = ()) -> PoseGraphOutput:
+                        extra: list[LoopConstraint] = (), threads: int = 0
+                        ) -> PoseGraphOutput:
     """Refined world_from_rig per rig sample. ``extra`` constraints join the measured ones
-    (benchmarks inject false loops)."""
+    (benchmarks inject false loops). Loops are measured on ``threads`` CPU threads (0: every
+    core); the result does not depend on it."""
     rig = keyframes.rig
     graph = _Graph(keyframes, frame_type)
     images = {k.image_name: k for k in keyframes.keyframes}
@@ -116,24 +119,34 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
              for x in loops]
     if options.visual_sequential:
         edges += _sequential_edges(keyframes)
-    constraints, kinds, skipped = [], {}, []
-    for edge in edges:
-        query, match = images[edge.query_image], images[edge.match_image]
-        if query.sample_id == match.sample_id:
-            continue
-        try:
-            matches_qm, _ = cached_match(cache, matcher, query.image_name, match.image_name,
-                                         features[query.image_name], features[match.image_name])
+    def inputs():
+        """(edge, query, match, partner, cached query-match and partner-match matches)."""
+        for edge in edges:
+            query, match = images[edge.query_image], images[edge.match_image]
+            if query.sample_id == match.sample_id:
+                continue
             partner_name = rig.stereo_partner(query.camera_name)
             partner = next((k for k in samples[query.sample_id]
                             if k.camera_name == partner_name), None) if partner_name else None
-            matches_pm = None
-            if partner is not None:
-                matches_pm, _ = cached_match(cache, matcher, partner.image_name,
-                                             match.image_name, features[partner.image_name],
-                                             features[match.image_name])
-            prior = keyframes.world_from_rig(match).inverse() * keyframes.world_from_rig(query)
-            measured = measure_loop(
+            yield (edge, query, match, partner,
+                   cached_matches(cache, query.image_name, match.image_name),
+                   None if partner is None else
+                   cached_matches(cache, partner.image_name, match.image_name))
+
+    def measure(item):
+        """(computed matches to cache, the measurement or the reason it failed)."""
+        edge, query, match, partner, matches_qm, matches_pm = item
+        computed = []
+        if matches_qm is None:
+            matches_qm = matcher.match(features[query.image_name], features[match.image_name])
+            computed.append((query.image_name, match.image_name, matches_qm))
+        if partner is not None and matches_pm is None:
+            matches_pm = matcher.match(features[partner.image_name],
+                                       features[match.image_name])
+            computed.append((partner.image_name, match.image_name, matches_pm))
+        prior = keyframes.world_from_rig(match).inverse() * keyframes.world_from_rig(query)
+        try:
+            return computed, measure_loop(
                 rig, LoopView(query.camera_name, features[query.image_name].keypoints_px),
                 LoopView(match.camera_name, features[match.image_name].keypoints_px),
                 matches_qm.indices,
@@ -142,7 +155,17 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                 matches_pm.indices if matches_pm is not None else None,
                 edge.two_view, prior, seed)
         except GeometryError as exc:
-            skipped.append(f"{edge.query_image} - {edge.match_image}: {exc}")
+            return computed, exc
+
+    constraints, kinds, skipped = [], {}, []
+    for (edge, query, match, *_), (computed, measured) in ordered_map(measure, inputs(),
+                                                                      threads):
+        for name0, name1, matches in computed:
+            if cache is not None and not cache.has_matches(name0, name1) and \
+                    not cache.has_matches(name1, name0):
+                cache.put_matches(name0, name1, matches)
+        if isinstance(measured, GeometryError):
+            skipped.append(f"{edge.query_image} - {edge.match_image}: {measured}")
             continue
         relative = measured.rig_match_from_rig_query
         if frame_type == "camera":  # rig relation -> camera relation
@@ -197,7 +220,7 @@ class PoseGraphStage(Stage):
             output = optimize_pose_graph(keyframes, loops, features,
                                          LazyMatcher(options.features, options.device),
                                          options.pose_graph, options.frame_type, options.seed,
-                                         cache, extra)
+                                         cache, extra, options.cpu_threads)
         write_tum(run.pose_graph_poses, output.world_from_rig)
         with atomic_write(run.pose_graph_summary) as handle:
             json.dump(output.summary, handle, indent=2)
