@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -32,11 +33,19 @@ class SiftOptions:
 class SiftExtractor:
     name = "sift"
     descriptor_dim = 128
+    parallel_images = True
+    """Several images may be extracted at once on CPU threads (one detector per thread)."""
 
     def __init__(self, options: SiftOptions = SiftOptions()) -> None:
         self.options = options
-        self._sift = cv2.SIFT_create(nfeatures=max(options.max_keypoints, 0),
-                                     contrastThreshold=options.contrast_threshold)
+        self._local = threading.local()
+
+    @property
+    def _sift(self):
+        if not hasattr(self._local, "sift"):
+            self._local.sift = cv2.SIFT_create(nfeatures=max(self.options.max_keypoints, 0),
+                                               contrastThreshold=self.options.contrast_threshold)
+        return self._local.sift
 
     def config(self) -> dict:
         return {"name": self.name, **self.options.__dict__}

@@ -17,6 +17,7 @@ import numpy as np
 from cusfm_ros.errors import CusfmError
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.pipeline.components import FeatureOptions, make_extractor
+from cusfm_ros.pipeline.parallel import ordered_map
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features
@@ -37,18 +38,27 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 def extract_features(images: Sequence[tuple[str, str | Path | np.ndarray]], extractor,
-                     store: FeatureStore, skip_existing: bool = True) -> dict:
+                     store: FeatureStore, skip_existing: bool = True, threads: int = 0) -> dict:
     """Extract ``(name, image or image path)`` into ``store``; ``extractor`` is an object or a
-    zero-argument factory (called only if there is work). Returns counts."""
+    zero-argument factory (called only if there is work). Images are decoded on ``threads``
+    CPU threads (0: every core), and extracted there too when the extractor runs on one core
+    per call (SIFT); the networks keep their own thread pools and run one image at a time.
+    Returns counts."""
     todo = [(n, i) for n, i in images if not (skip_existing and store.has_features(n))]
     logger.info("features: %d images, %d to extract", len(images), len(todo))
     keypoints = 0
-    progress = Progress("features", len(todo), "images")
-    for name, image in todo:
-        if callable(extractor) and not hasattr(extractor, "extract"):
-            extractor = extractor()
+    if todo and callable(extractor) and not hasattr(extractor, "extract"):
+        extractor = extractor()
+    in_threads = getattr(extractor, "parallel_images", False)
+
+    def decode(item):
+        image = item[1]
         array = read_image(image) if isinstance(image, (str, Path)) else image
-        features = extractor.extract(array)
+        return extractor.extract(array) if in_threads else array
+
+    progress = Progress("features", len(todo), "images")
+    for (name, _), result in ordered_map(decode, todo, threads):
+        features = result if in_threads else extractor.extract(result)
         store.put_features(name, features)
         keypoints += len(features)
         progress.step()
@@ -69,7 +79,8 @@ class FeaturesStage(Stage):
         started = time.perf_counter()
         with open_features(run, options, write=True, recover=context.resuming) as store:
             counts = extract_features(images, lambda: make_extractor(options.features,
-                                                                     options.device), store)
+                                                                     options.device), store,
+                                      threads=options.cpu_threads)
         logger.info("features: extracted %d images (%d keypoints) in %.1f s",
                     counts["extracted"], counts["keypoints_extracted"],
                     time.perf_counter() - started)

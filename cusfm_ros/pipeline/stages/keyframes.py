@@ -46,6 +46,7 @@ from cusfm_ros.io.digest import file_digest
 from cusfm_ros.io.frames_meta import write_frames_meta
 from cusfm_ros.io.keyframes_file import write_keyframes
 from cusfm_ros.io.tum import write_tum
+from cusfm_ros.pipeline.parallel import ordered_map
 from cusfm_ros.pipeline.stage import Stage, StageContext
 
 logger = logging.getLogger(__name__)
@@ -112,11 +113,12 @@ class KeyframeResult:
 
 
 def extract_keyframes(bag_path: str | os.PathLike, out_dir: str | os.PathLike,
-                      options: KeyframeOptions = KeyframeOptions(), seed: int = 0
-                      ) -> KeyframeResult:
+                      options: KeyframeOptions = KeyframeOptions(), seed: int = 0,
+                      threads: int = 0) -> KeyframeResult:
     """Read ``bag_path`` and write its keyframes to ``out_dir`` (replaced atomically);
-    ``seed`` seeds the visual odometry's RANSAC when the bag has no pose source."""
-    return KeyframeExtractor(options, seed).solve(bag_path, out_dir)
+    ``seed`` seeds the visual odometry's RANSAC when the bag has no pose source; the images
+    are encoded on ``threads`` CPU threads (0: every core)."""
+    return KeyframeExtractor(options, seed, threads).solve(bag_path, out_dir)
 
 
 class KeyframesStage(Stage):
@@ -136,14 +138,18 @@ class KeyframesStage(Stage):
 
     def run(self, context: StageContext) -> dict:
         result = extract_keyframes(context.bag, context.run.keyframes_dir,
-                                   context.options.keyframes, context.options.seed)
+                                   context.options.keyframes, context.options.seed,
+                                   context.options.cpu_threads)
         return result.counts()
 
 
 class KeyframeExtractor:
-    def __init__(self, options: KeyframeOptions = KeyframeOptions(), seed: int = 0) -> None:
+    def __init__(self, options: KeyframeOptions = KeyframeOptions(), seed: int = 0,
+                 threads: int = 0) -> None:
         self.options = options
         self.seed = seed
+        self.threads = threads
+        """CPU threads encoding the keyframe images (0: every core)."""
 
     def solve(self, bag_path: str | os.PathLike, out_dir: str | os.PathLike) -> KeyframeResult:
         bag_path, out = Path(bag_path), Path(out_dir)
@@ -473,33 +479,44 @@ class KeyframeExtractor:
         written = 0
         for camera in rig.cameras:
             (tmp / camera.name).mkdir(parents=True, exist_ok=True)
-        for message in bag.messages(streams):
-            stream = streams[message.topic]
-            stamp = bag.header_stamp_ns(message)
-            key = (stream.name, stamp)
-            if key not in wanted:
-                continue
-            sample_index, name = wanted.pop(key)
-            image = self._decode(bag, message, stamp, bad_frames)
-            if image is None:
-                continue
-            camera = rig[name].camera
-            if image.shape[1] != camera.width or image.shape[0] != camera.height:
-                raise BagError(f"{message.topic}: image is {image.shape[1]}x{image.shape[0]} "
-                               f"but {stream.info_topic} says {camera.width}x{camera.height}; "
-                               "fix the CameraInfo or record matching topics")
-            image_name = f"{name}/{stamp}.png"
+        def images_to_write():
+            """(file, image) of every selected image, decoded here (the bag is read in this
+            thread); the PNG encoding runs on the CPU threads."""
+            for message in bag.messages(streams):
+                stream = streams[message.topic]
+                stamp = bag.header_stamp_ns(message)
+                key = (stream.name, stamp)
+                if key not in wanted:
+                    continue
+                sample_index, name = wanted.pop(key)
+                image = self._decode(bag, message, stamp, bad_frames)
+                if image is None:
+                    continue
+                camera = rig[name].camera
+                if image.shape[1] != camera.width or image.shape[0] != camera.height:
+                    raise BagError(f"{message.topic}: image is {image.shape[1]}x"
+                                   f"{image.shape[0]} but {stream.info_topic} says "
+                                   f"{camera.width}x{camera.height}; fix the CameraInfo or "
+                                   "record matching topics")
+                image_name = f"{name}/{stamp}.png"
+                world_from_base_all[sample_index] = Rigid3.from_matrix(
+                    check_finite(sample_poses[sample_index], "interpolated pose"))
+                # each image gets the body pose at its own stamp (cameras may trigger apart)
+                world_from_base_at_image = Rigid3.from_matrix(
+                    world_from_base.interpolate(np.array([stamp]))[0])
+                keyframes.append(Keyframe(str(len(keyframes)), name, stamp, image_name,
+                                          str(sample_index),
+                                          world_from_base_at_image * rig[name].rig_from_cam))
+                yield tmp / image_name, image
+
+        def write_png(item) -> bool:
+            path, image = item
             to_write = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-            if not cv2.imwrite(str(tmp / image_name), to_write):
-                raise CusfmError(f"cannot write {tmp / image_name}")
-            world_from_base_all[sample_index] = Rigid3.from_matrix(
-                check_finite(sample_poses[sample_index], "interpolated pose"))
-            # each image gets the body pose at its own stamp (cameras may trigger apart)
-            world_from_base_at_image = Rigid3.from_matrix(
-                world_from_base.interpolate(np.array([stamp]))[0])
-            keyframes.append(Keyframe(str(len(keyframes)), name, stamp, image_name,
-                                      str(sample_index),
-                                      world_from_base_at_image * rig[name].rig_from_cam))
+            return cv2.imwrite(str(path), to_write)
+
+        for (path, _), ok in ordered_map(write_png, images_to_write(), self.threads):
+            if not ok:
+                raise CusfmError(f"cannot write {path}")
             written += 1
             if written % 200 == 0:
                 logger.info("keyframes: wrote %d/%d images", written, written + len(wanted))
