@@ -109,6 +109,8 @@ class TorchXFeatExtractor:
 
 
 class TorchLightGlueMatcher:
+    parallel_pairs = True
+    """Pairs may be matched at once from CPU threads (the GPU queues their kernels)."""
     WEIGHTS = {"lightglue": ("aliked-lightglue", LightGlueMatcher),
                "lighterglue": ("xfeat-lighterglue", LighterGlueMatcher)}
 

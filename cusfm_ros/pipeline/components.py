@@ -145,15 +145,21 @@ def make_matcher(options: FeatureOptions, device: str = "auto"):
 
 class LazyMatcher:
     """Builds the matcher on first use (loading LightGlue costs seconds; many runs reuse every
-    match from a cache and never need it). Safe to call from several threads."""
+    match from a cache and never need it). Safe to call from several threads: a matcher that
+    already uses every core per call (ONNX Runtime's thread pool) runs one pair at a time
+    while the verification of other pairs goes on; k-NN and the torch backend run in
+    parallel (measured on 2 cores: LighterGlue 0.415 s per pair alone, 0.462 s two at once)."""
 
     def __init__(self, options: FeatureOptions, device: str = "auto") -> None:
         self.options, self.device, self._matcher = options, device, None
-        self._lock = threading.Lock()
+        self._lock, self._run_lock = threading.Lock(), threading.Lock()
 
     def match(self, features0, features1):
         if self._matcher is None:
             with self._lock:
                 if self._matcher is None:
                     self._matcher = make_matcher(self.options, self.device)
-        return self._matcher.match(features0, features1)
+        if getattr(self._matcher, "parallel_pairs", False):
+            return self._matcher.match(features0, features1)
+        with self._run_lock:
+            return self._matcher.match(features0, features1)

@@ -65,6 +65,8 @@ DENSE_LIMIT = 16_000_000
 
 class KnnMatcher:
     name = "knn"
+    parallel_pairs = True
+    """Pairs may be matched at once on CPU threads (numpy releases the GIL)."""
 
     def __init__(self, options: KnnOptions = KnnOptions()) -> None:
         self.options = options
