@@ -289,7 +289,7 @@ def test_registry_drives_options_steps_and_cli():
     owned = {name for stage in STAGES for name in stage.sections}
     assert owned == set(SECTIONS)
     fields = {f for f in MapperOptions.__dataclass_fields__}
-    assert fields == owned | {"seed", "device", "frame_type"}
+    assert fields == owned | {"seed", "device", "frame_type", "cpu_threads"}
     help_text = build_parser().parse_args(["map", "b", "--out", "o"])
     assert all(hasattr(help_text, f"skip_{name}") for name in STAGE_NAMES)
     # every declared input is some stage's output

@@ -11,6 +11,7 @@ features stay shared. While the pool runs, BLAS is held to one thread per worker
 from __future__ import annotations
 
 import os
+import signal
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -34,6 +35,14 @@ def thread_count(requested: int = 0) -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _block_signals() -> None:
+    """Worker threads leave Ctrl-C and SIGTERM to the main thread, which handles them (a
+    signal the kernel hands to a worker is noticed late by Python, and native libraries that
+    check for signals there may swallow it)."""
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
 def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], threads: int = 0
                 ) -> Iterator[tuple[Item, Result]]:
     """``(item, function(item))`` in the order of ``items``, computed on ``threads`` threads
@@ -48,7 +57,8 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], threa
     window = 2 * threads
     pending: deque = deque()
     with threadpool_limits(limits=1, user_api="blas"), \
-            ThreadPoolExecutor(max_workers=threads, thread_name_prefix="cusfm") as pool:
+            ThreadPoolExecutor(max_workers=threads, thread_name_prefix="cusfm",
+                               initializer=_block_signals) as pool:
         for item in items:
             pending.append((item, pool.submit(function, item)))
             if len(pending) >= window:
