@@ -147,7 +147,7 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
     # matching runs on threads; the measurement stays in this thread: it is mostly Python
     # (scipy's least squares calls back per iteration), so threads would only fight for
     # the GIL (measured on the H200 machine, 300 frames, 1267 loops: the stage took 105 s
-    # with the measurement on 16 threads against 40 s in one)
+    # with the measurement on 16 threads against 48 s in one)
     constraints, kinds, skipped = [], {}, []
     for item, (matches_qm, matches_pm) in ordered_map(missing_matches, inputs(), threads):
         edge, query, match, partner, cached_qm, cached_pm = item
