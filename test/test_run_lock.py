@@ -84,9 +84,12 @@ def test_ctrl_c_exits_130_with_one_line_and_a_resumable_run(tmp_path, models_rea
                                       image_width=320, image_height=240)).generate(
         tmp_path / "sim")
     run = tmp_path / "run"
+    # a test suite started as a background job (`make test &`) ignores SIGINT, and so would
+    # its children: give the child a terminal's default Ctrl-C handling
     process = subprocess.Popen([sys.executable, "-m", "cusfm_ros.cli.main", "map",
                                 str(sim / "bag"), "--out", str(run), "--max-keypoints", "256"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while not (run / "stages" / "features.json").is_file() and time.monotonic() < deadline:
         time.sleep(0.05)
