@@ -7,7 +7,6 @@ provider).
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from cusfm_ros.core.features.aliked import MIN_IMAGE_PX, AlikedOptions
@@ -16,7 +15,7 @@ from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LightGlueOption
                                                filter_matches, normalize_keypoints)
 from cusfm_ros.core.features.types import Features, FeatureError, Matches, prepare_image
 from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, features_in_image,
-                                           network_input)
+                                           network_input, network_mask)
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
 from cusfm_ros.models.nets.aliked import detect_keypoints
@@ -92,16 +91,11 @@ class TorchXFeatExtractor:
         torch = self.torch
         grey, factor = network_input(image)
         h, w = np.asarray(image).shape[:2]
-        if mask is not None and np.asarray(mask).shape[:2] != (h, w):
-            raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image is {(h, w)}")
+        allowed = network_mask(mask, (h, w), grey.shape)
         with torch.inference_mode():
             maps = self.model(torch.from_numpy(grey).to(self.device))
-            allowed = None
-            if mask is not None:
-                small = (np.asarray(mask) > 0).astype(np.uint8)
-                small = cv2.resize(small, (grey.shape[3], grey.shape[2]),
-                                   interpolation=cv2.INTER_NEAREST) > 0
-                allowed = torch.from_numpy(small).to(self.device)
+            if allowed is not None:
+                allowed = torch.from_numpy(allowed).to(self.device)
             keypoints, scores, descriptors = detect_and_describe(
                 *maps, self.options.detection_threshold, self.options.max_keypoints, allowed)
         return features_in_image(keypoints.cpu().numpy(), scores.cpu().numpy(),

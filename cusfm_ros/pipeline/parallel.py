@@ -37,8 +37,8 @@ def thread_count(requested: int = 0) -> int:
 
 def _block_signals() -> None:
     """Worker threads leave Ctrl-C and SIGTERM to the main thread, which handles them (a
-    signal the kernel hands to a worker is noticed late by Python, and native libraries that
-    check for signals there may swallow it)."""
+    signal the kernel hands to a worker reaches Python only when the main thread next runs
+    Python code, not while it waits for a result)."""
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
 

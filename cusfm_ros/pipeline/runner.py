@@ -145,9 +145,9 @@ def _bind_bag(run: RunDir, bag: Path, overwrite: bool) -> None:
 
 def _load_native_runtimes() -> None:
     """Import ONNX Runtime before any stage starts. A Ctrl-C that lands inside its native
-    module initialization is swallowed, or turned into "ImportError: initialization failed"
-    (measured: a SIGINT 0.1 s into the features stage, where it was imported lazily, gave
-    exit 1 with a traceback or a run that went on), so that window stays out of the stages."""
+    module initialization turns into "ImportError: initialization failed" (measured: a SIGINT
+    0.1 s into the features stage, where it was imported lazily, gave exit 1 with a
+    traceback instead of 130), so that window stays out of the stages."""
     try:
         import onnxruntime  # noqa: F401
     except ImportError:  # not installed: the stages that need it say so themselves

@@ -62,6 +62,19 @@ def network_input(image: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
     return grey[None, None].astype(np.float32), (w / w32, h / h32)
 
 
+def network_mask(mask: np.ndarray | None, image_shape: tuple[int, ...],
+                 network_shape: tuple[int, ...]) -> np.ndarray | None:
+    """An image's mask (nonzero: keypoints allowed) at the network input's (H', W'); None
+    stays None; a mask of another size than the image is an error."""
+    if mask is None:
+        return None
+    mask = np.asarray(mask)
+    if mask.shape[:2] != tuple(image_shape[:2]):
+        raise FeatureError(f"mask is {mask.shape[:2]} but the image is {tuple(image_shape[:2])}")
+    return cv2.resize((mask > 0).astype(np.uint8), (network_shape[-1], network_shape[-2]),
+                      interpolation=cv2.INTER_NEAREST) > 0
+
+
 def _grid_coordinates(keypoints: np.ndarray, size: tuple[int, int], map_shape: tuple[int, int]
                       ) -> np.ndarray:
     """Keypoints in pixels of an image ``size`` (H, W), normalized by (W - 1, H - 1) as the
@@ -151,14 +164,8 @@ class XFeatExtractor:
         """Keypoints in pixels of ``image``; pixels where ``mask`` is 0 give none."""
         grey, factor = network_input(image)
         h, w = np.asarray(image).shape[:2]
-        if mask is not None and np.asarray(mask).shape[:2] != (h, w):
-            raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image is {(h, w)}")
+        allowed = network_mask(mask, (h, w), grey.shape)
         heatmap, reliability, feature_map = self.session.run(None, {"image": grey})
-        allowed = None
-        if mask is not None:
-            allowed = cv2.resize((np.asarray(mask) > 0).astype(np.uint8),
-                                 (grey.shape[3], grey.shape[2]),
-                                 interpolation=cv2.INTER_NEAREST) > 0
         keypoints, scores, descriptors = detect_and_describe(
             heatmap[0, 0], reliability[0, 0], feature_map[0], self.options.detection_threshold,
             self.options.max_keypoints, allowed)

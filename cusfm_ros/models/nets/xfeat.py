@@ -18,9 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-STRIDE = 32
-"""Input sides must be multiples of this (the backbone downsamples by 32)."""
-NMS_KERNEL = 5
+from cusfm_ros.core.features.xfeat import NMS_KERNEL
 
 
 class BasicLayer(nn.Module):

@@ -38,6 +38,14 @@ def cached_matches(cache: FeatureStore | None, name0: str, name1: str):
     return None
 
 
+def remember_matches(cache: FeatureStore | None, name0: str, name1: str, matches) -> None:
+    """Store computed raw matches in ``cache`` unless the pair is there already (either
+    order: two pairs in flight at once may have computed the same one)."""
+    if cache is not None and not (cache.has_matches(name0, name1)
+                                  or cache.has_matches(name1, name0)):
+        cache.put_matches(name0, name1, matches)
+
+
 def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
                  vocabulary: VocabularyTree, matcher, options: LoopOptions = LoopOptions(),
                  seed: int = 0, cache: FeatureStore | None = None, threads: int = 0
@@ -88,8 +96,8 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
             progress.step(note=f"{len(loops)} loops")
             continue
         computed, matches, result = outcome
-        if computed and cache is not None:
-            cache.put_matches(query.image_name, match.image_name, matches)
+        if computed:
+            remember_matches(cache, query.image_name, match.image_name, matches)
         verified += 1
         if result.accepted:
             loops.append(LoopRecord(

@@ -22,7 +22,7 @@ from cusfm_ros.pipeline.components import LazyMatcher
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.parallel import ordered_map
-from cusfm_ros.pipeline.stages.loops import cached_matches
+from cusfm_ros.pipeline.stages.loops import cached_matches, remember_matches
 from cusfm_ros.pipeline.stores import (load_keyframes, open_features, open_raw_matches,
                                        open_verified)
 
@@ -89,8 +89,8 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
 
     for (a, b, *_), (computed, raw, kept) in ordered_map(match_and_verify, inputs(), threads):
         matched += computed
-        if computed and cache is not None:
-            cache.put_matches(a, b, raw)
+        if computed:
+            remember_matches(cache, a, b, raw)
         if len(kept) < options.min_inliers:
             kept, rejected = Matches.empty(), rejected + 1
         verified.put_matches(a, b, kept)

@@ -33,7 +33,7 @@ from cusfm_ros.pipeline.components import LazyMatcher
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.parallel import ordered_map
-from cusfm_ros.pipeline.stages.loops import cached_matches
+from cusfm_ros.pipeline.stages.loops import cached_matches, remember_matches
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
 
 logger = logging.getLogger(__name__)
@@ -151,13 +151,10 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
     constraints, kinds, skipped = [], {}, []
     for item, (matches_qm, matches_pm) in ordered_map(missing_matches, inputs(), threads):
         edge, query, match, partner, cached_qm, cached_pm = item
-        if cache is not None:
-            for pair, cached, matches in (((query, match), cached_qm, matches_qm),
-                                          ((partner, match), cached_pm, matches_pm)):
-                names = (pair[0].image_name, pair[1].image_name) if pair[0] else None
-                if names and cached is None and matches is not None and \
-                        not cache.has_matches(*names) and not cache.has_matches(*names[::-1]):
-                    cache.put_matches(*names, matches)
+        if cached_qm is None:
+            remember_matches(cache, query.image_name, match.image_name, matches_qm)
+        if partner is not None and cached_pm is None:
+            remember_matches(cache, partner.image_name, match.image_name, matches_pm)
         prior = keyframes.world_from_rig(match).inverse() * keyframes.world_from_rig(query)
         try:
             measured = measure_loop(
