@@ -119,15 +119,17 @@ class StaticTransforms:
 
 
 class Shutdown:
-    """SIGTERM (launch, systemd) and SIGINT both end ``spin``; which one is remembered so the
-    node can exit as that signal would have."""
+    """SIGTERM (launch, systemd) and SIGINT both end ``spin``; the first one is remembered so
+    the node can exit as that signal would have (a second signal sent while the node is
+    stopping, e.g. a supervisor's SIGTERM after a Ctrl-C, does not change the exit status)."""
 
     def __init__(self) -> None:
         self.signal: int | None = None
         signal.signal(signal.SIGTERM, self._note)
 
     def _note(self, signum, frame) -> None:
-        self.signal = signum
+        if self.signal is None:
+            self.signal = signum
 
     def spin(self, executor, done: Callable[[], bool] = lambda: False,
              slice_s: float = 0.1) -> None:
@@ -136,10 +138,9 @@ class Shutdown:
         try:
             while rclpy.ok() and self.signal is None and not done():
                 executor.spin_once(timeout_sec=slice_s)
-        except KeyboardInterrupt:
-            self.signal = signal.SIGINT
-        except rclpy.executors.ExternalShutdownException:
-            self.signal = signal.SIGINT
+        except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+            if self.signal is None:
+                self.signal = signal.SIGINT
         if self.signal is None and not rclpy.ok():
             self.signal = signal.SIGINT
 
