@@ -149,10 +149,17 @@ def test_extrinsic_refinement_recovers_the_calibration(rng):
     fixed = IterativeMapper().solve(mapping_input(truth, data, camera, start, wrong))
     refined = IterativeMapper().solve(mapping_input(truth, data, camera, start, wrong,
                                                     optimize_extrinsics=True))
+    # what the images observe is the cameras' pose relative to each other: 5 cm / 2 deg off
+    # before, recovered to a millimetre; a shift common to both cameras against the rig body
+    # trades off against the odometry factors (1-2 cm here, the same cost to 1e-6)
+    truth_0_from_1 = invert_matrices(truth["rig_from_cam"][0]) @ truth["rig_from_cam"][1]
+    delta = Rigid3.from_matrix(invert_matrices(truth_0_from_1) @ invert_matrices(
+        refined.node_from_sensor[0]) @ refined.node_from_sensor[1])
+    assert np.linalg.norm(delta.translation) < 0.002 and delta.rotation_angle_deg() < 0.02
     for s in range(2):
         delta = Rigid3.from_matrix(invert_matrices(truth["rig_from_cam"][s]) @
                                    refined.node_from_sensor[s])
-        assert np.linalg.norm(delta.translation) < 0.01 and delta.rotation_angle_deg() < 0.2
+        assert np.linalg.norm(delta.translation) < 0.025 and delta.rotation_angle_deg() < 0.2
     assert np.mean(pixel_errors(camera, refined, data)[refined.inliers]) < 0.5
     # with the wrong calibration held fixed, the map cannot fit the images as well
     assert fixed.rounds[-1]["mean_error_px"] > 1.3 * refined.rounds[-1]["mean_error_px"]

