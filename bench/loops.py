@@ -36,7 +36,7 @@ def _peak_child(queue, method: str, count: int) -> None:
     from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions, VocabularyTree
 
     started = time.perf_counter()
-    options = VocabularyOptions(10, 4, workers=1)
+    options = VocabularyOptions(10, 4)
     if method == "kmeans":  # all descriptors in memory at once
         VocabularyTree.build(synthetic_descriptors(count), options)
     else:  # streamed in chunks, as from disk
@@ -64,20 +64,17 @@ def memory_table(count: int) -> None:
 
 
 def speed_table() -> None:
-    from threadpoolctl import threadpool_limits
+    import torch
 
     from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions, VocabularyTree
     descriptors = synthetic_descriptors(200000)
     print("\n| k-means vocabulary (200k descriptors, 10^4 words) | seconds |\n|---|---|")
-    with threadpool_limits(1):
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    for device in devices:
         start = time.perf_counter()
-        VocabularyTree.build(descriptors, VocabularyOptions(10, 4, workers=1))
-        single = time.perf_counter() - start
-    start = time.perf_counter()
-    VocabularyTree.build(descriptors, VocabularyOptions(10, 4, workers=0))
-    parallel = time.perf_counter() - start
-    print(f"| single-threaded | {single:.1f} |\n| all cores (2 here), subtrees in parallel | "
-          f"{parallel:.1f} ({single / parallel:.1f}x) |")
+        VocabularyTree.build(descriptors, VocabularyOptions(10, 4, device=device))
+        print(f"| {device} ({torch.get_num_threads()} CPU threads) | "
+              f"{time.perf_counter() - start:.1f} |")
 
 
 def loop_table(frames_street: int, frames_indoor: int) -> None:

@@ -39,7 +39,7 @@ def main() -> None:
                                   for i in range(k)])
     m = k * per
     vocabulary = VocabularyTree.build(rng.normal(size=(20000, 128)).astype(np.float32),
-                                      VocabularyOptions(branching=10, depth=3, workers=1))
+                                      VocabularyOptions(branching=10, depth=3))
     bow = sp.random(k, vocabulary.num_words, density=0.05, format="csr", dtype=np.float32,
                     random_state=0)
     ids, stamps, poses = keyframes.sample_poses()

@@ -125,7 +125,7 @@ def _tiny_map(rng, num_keyframes=6, points=80, dim=16) -> PriorMap:
     descriptors = (centres[obs_keyframe[order], rng.integers(0, 4, len(order))]
                    + rng.normal(scale=0.1, size=(len(order), dim))).astype(np.float32)
     vocabulary = VocabularyTree.build(descriptors, VocabularyOptions(branching=4, depth=3,
-                                                                     workers=1),
+                                                                     ),
                                       documents=[descriptors[offsets[k]:offsets[k + 1]]
                                                  for k in range(num_keyframes)])
     import scipy.sparse as sp

@@ -12,7 +12,7 @@ from cusfm_ros.core.retrieval.vocabulary import (VocabularyError, VocabularyOpti
 from cusfm_ros.io.vocabulary_file import (load_birch, load_vocabulary, save_birch,
                                           save_vocabulary)
 
-SMALL = VocabularyOptions(branching=4, depth=3, seed=1, workers=1)
+SMALL = VocabularyOptions(branching=4, depth=3, seed=1)
 
 
 def clustered(rng, clusters=64, per_cluster=40, dim=32, spread=0.02):
@@ -37,17 +37,63 @@ def test_tree_build_quantize_save_load(tmp_path, rng):
     assert again.options.branching == 4 and again.options.depth == 3
 
 
-def test_parallel_build_equals_single_threaded(rng):
+def test_build_is_seeded_and_deterministic(rng):
     points, _ = clustered(rng)
-    single = VocabularyTree.build(points, SMALL)
-    parallel = VocabularyTree.build(points, VocabularyOptions(4, 3, seed=1, workers=2))
-    np.testing.assert_array_equal(single.quantize(points), parallel.quantize(points))
-    np.testing.assert_allclose(single.centroids, parallel.centroids, atol=1e-5)
+    first, again = VocabularyTree.build(points, SMALL), VocabularyTree.build(points, SMALL)
+    np.testing.assert_array_equal(first.centroids, again.centroids)
+    np.testing.assert_array_equal(first.children, again.children)
+    other = VocabularyTree.build(points, VocabularyOptions(4, 3, seed=2))
+    assert not np.array_equal(first.quantize(points), other.quantize(points))
+
+
+def test_kmeans_tree_clusters_every_node_and_caps_the_training_sample(rng):
+    """Nested clusters come out as the tree's levels, each leaf centroid the mean of its
+    cluster, also where a node trained on a sample of its points and then assigned all."""
+    from cusfm_ros.core.retrieval.kmeans import hierarchical_kmeans
+
+    # 3 x 3 x 3 nested clusters (scales 10, 1, 0.1): the tree must find the nesting
+    top, middle, low = (rng.normal(size=(3, 32)) * scale for scale in (10.0, 1.0, 0.1))
+    labels = np.repeat(np.arange(27), 60)
+    centres = top[labels // 9] + middle[(labels // 3) % 3] + low[labels % 3]
+    points = (centres + 0.005 * rng.normal(size=centres.shape)).astype(np.float32)
+    for cap in (4096, 64):  # 64 < 1620 points at the root: trained on a sample
+        tree = hierarchical_kmeans(points, np.ones(len(points)), 3, 3, 50, seed=0,
+                                   train_points_per_node=cap)
+        assert tree.leaf.sum() == 27 and len(tree.centroids) == 1 + 3 + 9 + 27
+        vocabulary = VocabularyTree(tree.centroids, tree.children,
+                                    np.where(tree.leaf, np.cumsum(tree.leaf) - 1, -1),
+                                    np.ones(int(tree.leaf.sum())), SMALL)
+        words = vocabulary.quantize(points)
+        for word in np.unique(words):  # one leaf per cluster, never mixed
+            assert len(np.unique(labels[words == word])) == 1
+        assert len(np.unique(words)) == 27
+        np.testing.assert_allclose(tree.centroids[tree.leaf][np.argsort(
+            [labels[words == w][0] for w in range(27)])],
+            [points[labels == c].mean(0) for c in range(27)], atol=1e-4)
+
+
+def test_duplicate_points_make_a_leaf_not_a_chain(rng):
+    points = np.repeat(rng.normal(size=(2, 16)).astype(np.float32), 50, axis=0)
+    tree = VocabularyTree.build(points, VocabularyOptions(4, 3, seed=0))
+    assert tree.num_words == 2  # two distinct descriptors: the root splits in two, no deeper
+    assert len(np.unique(tree.quantize(points))) == 2
+
+
+@pytest.mark.gpu
+def test_kmeans_on_the_gpu_matches_the_cpu(rng):
+    torch = pytest.importorskip("torch")
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA GPU")
+    points, _ = clustered(rng)
+    cpu = VocabularyTree.build(points, SMALL)
+    gpu = VocabularyTree.build(points, VocabularyOptions(4, 3, seed=1, device="cuda"))
+    np.testing.assert_allclose(gpu.centroids, cpu.centroids, atol=1e-4)
+    np.testing.assert_array_equal(gpu.quantize(points), cpu.quantize(points))
 
 
 def test_bad_vocabulary_input(rng, tmp_path, caplog):
     points, _ = clustered(rng, clusters=4, per_cluster=5)
-    tree = VocabularyTree.build(points, VocabularyOptions(4, 5, workers=1))  # 20 < 4^5
+    tree = VocabularyTree.build(points, VocabularyOptions(4, 5))  # 20 < 4^5
     assert "too few" in caplog.text and tree.options.depth == 2
     with pytest.raises(VocabularyError, match="dimension 16 but the vocabulary was built for 32"):
         tree.quantize(np.zeros((3, 16), np.float32))

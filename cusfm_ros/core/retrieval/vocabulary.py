@@ -1,9 +1,10 @@
 """Vocabulary tree (hierarchical k-means, Nister & Stewenius 2006) with TF-IDF weights.
 
 Built from the dataset's own descriptors (paper section 3.2): recursive k-means with
-branching factor K and depth L, k-means++ seeding, the first level's subtrees built in parallel
-processes. Points may carry weights (BIRCH's clustering features, see ``birch.py``), so the same
-builder refines an incrementally collected CF tree into the same structure.
+branching factor K and depth L, k-means++ seeding, every node of a level clustered at once in
+torch on the run's device (``kmeans.py``). Points may carry weights (BIRCH's clustering
+features, see ``birch.py``), so the same builder refines an incrementally collected CF tree
+into the same structure.
 
 Storage: flat arrays — ``centroids (M, D)``, ``children (M, K)`` (-1 = none), ``words (M,)``
 (-1 for inner nodes); node 0 is the root. ``cusfm_ros.io.vocabulary_file`` saves them as a
@@ -12,14 +13,12 @@ versioned ``.npz``.
 
 from __future__ import annotations
 
-import concurrent.futures
 import logging
-import multiprocessing
-import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from cusfm_ros.core.retrieval.kmeans import hierarchical_kmeans
 from cusfm_ros.errors import ConfigError, CusfmError
 
 logger = logging.getLogger(__name__)
@@ -37,69 +36,14 @@ class VocabularyOptions:
     """K^L leaves at most: 10^4 words by default."""
     kmeans_iterations: int = 20
     seed: int = 0
-    workers: int = 0
-    """Processes for the first-level subtrees; 0 = all cores, 1 = single-threaded."""
+    device: str = "cpu"
+    """Where the k-means runs (``cpu`` or ``cuda``); not stored with the vocabulary."""
 
     def __post_init__(self) -> None:
         if self.branching < 2 or self.depth < 1:
             raise ConfigError("vocabulary: branching must be >= 2 and depth >= 1")
-
-
-def weighted_kmeans(points: np.ndarray, weights: np.ndarray, k: int, iterations: int,
-                    seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(k, D) centres and (N,) labels; scikit-learn's KMeans with k-means++ and weights."""
-    from sklearn.cluster import KMeans
-
-    model = KMeans(n_clusters=k, init="k-means++", n_init=1, max_iter=iterations,
-                   random_state=seed, algorithm="lloyd")
-    labels = model.fit_predict(points, sample_weight=weights)
-    return model.cluster_centers_.astype(np.float32), labels
-
-
-@dataclass
-class _Subtree:
-    centroids: list = field(default_factory=list)
-    children: list = field(default_factory=list)
-    leaf: list = field(default_factory=list)
-
-
-def _build_subtree(points: np.ndarray, weights: np.ndarray, centroid: np.ndarray, level: int,
-                   options: VocabularyOptions, seed: int) -> _Subtree:
-    """Nodes of the subtree below (and including) one node, in depth-first order; children
-    indices are local to the subtree."""
-    tree = _Subtree()
-
-    def grow(pts, wts, centre, lvl, node_seed) -> int:
-        index = len(tree.centroids)
-        tree.centroids.append(centre)
-        tree.children.append([-1] * options.branching)
-        tree.leaf.append(True)
-        distinct = len(np.unique(pts, axis=0)) if len(pts) <= 4 * options.branching else len(pts)
-        if lvl >= options.depth or distinct < options.branching:
-            return index
-        centres, labels = weighted_kmeans(pts, wts, options.branching,
-                                          options.kmeans_iterations, node_seed)
-        tree.leaf[index] = False
-        for child in range(options.branching):
-            members = labels == child
-            if not members.any():
-                continue
-            tree.children[index][child] = grow(pts[members], wts[members], centres[child],
-                                               lvl + 1, node_seed * 31 + child + 1)
-        return index
-
-    grow(points, weights, centroid, level, seed)
-    return tree
-
-
-def _init_worker() -> None:
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)  # one process per subtree already fills the cores
-
-
-def _subtree_task(args):
-    return _build_subtree(*args)
+        if self.device not in ("cpu", "cuda"):
+            raise ConfigError(f"vocabulary: device must be cpu or cuda, got {self.device!r}")
 
 
 class VocabularyTree:
@@ -143,35 +87,13 @@ class VocabularyTree:
                 raise VocabularyError(f"need at least {k} descriptors for branching {k}, "
                                       f"got {len(points)}")
             options = VocabularyOptions(k, shrunk, options.kmeans_iterations, options.seed,
-                                        options.workers)
-        # level 1 in this process, the K subtrees below it in parallel
-        centres, labels = weighted_kmeans(points, weights, k, options.kmeans_iterations,
-                                          options.seed)
-        tasks = [(points[labels == c], weights[labels == c], centres[c], 1, options,
-                  options.seed * 1000 + c + 1) for c in range(k) if np.any(labels == c)]
-        workers = options.workers or os.cpu_count() or 1
-        if workers > 1 and len(tasks) > 1:
-            with concurrent.futures.ProcessPoolExecutor(
-                    min(workers, len(tasks)), mp_context=multiprocessing.get_context("fork"),
-                    initializer=_init_worker) as pool:
-                subtrees = list(pool.map(_subtree_task, tasks))
-        else:
-            subtrees = [_subtree_task(task) for task in tasks]
-        centroids = [np.zeros(points.shape[1], np.float32)]
-        children = [[-1] * k]
-        leaf = [False]
-        for slot, subtree in zip([c for c in range(k) if np.any(labels == c)], subtrees):
-            offset = len(centroids)
-            children[0][slot] = offset
-            centroids.extend(subtree.centroids)
-            children.extend([[c + offset if c >= 0 else -1 for c in row]
-                             for row in subtree.children])
-            leaf.extend(subtree.leaf)
-        leaf = np.array(leaf)
-        words = np.full(len(leaf), -1, np.int64)
-        words[leaf] = np.arange(leaf.sum())
-        tree = cls(np.array(centroids, np.float32), np.array(children, np.int64), words,
-                   np.ones(int(leaf.sum()), np.float32), options)
+                                        options.device)
+        tree = hierarchical_kmeans(points, weights, k, options.depth,
+                                   options.kmeans_iterations, options.seed, options.device)
+        words = np.full(len(tree.leaf), -1, np.int64)
+        words[tree.leaf] = np.arange(int(tree.leaf.sum()))
+        tree = cls(tree.centroids, tree.children, words,
+                   np.ones(int(tree.leaf.sum()), np.float32), options)
         if documents is not None:
             tree.set_idf(documents)
         return tree
