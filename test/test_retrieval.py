@@ -79,18 +79,6 @@ def test_duplicate_points_make_a_leaf_not_a_chain(rng):
     assert len(np.unique(tree.quantize(points))) == 2
 
 
-@pytest.mark.gpu
-def test_kmeans_on_the_gpu_matches_the_cpu(rng):
-    torch = pytest.importorskip("torch")
-    if not torch.cuda.is_available():
-        pytest.skip("no CUDA GPU")
-    points, _ = clustered(rng)
-    cpu = VocabularyTree.build(points, SMALL)
-    gpu = VocabularyTree.build(points, VocabularyOptions(4, 3, seed=1, device="cuda"))
-    np.testing.assert_allclose(gpu.centroids, cpu.centroids, atol=1e-4)
-    np.testing.assert_array_equal(gpu.quantize(points), cpu.quantize(points))
-
-
 def test_bad_vocabulary_input(rng, tmp_path, caplog):
     points, _ = clustered(rng, clusters=4, per_cluster=5)
     tree = VocabularyTree.build(points, VocabularyOptions(4, 5))  # 20 < 4^5

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import pickle
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +41,4 @@ def load_birch(path: str | os.PathLike) -> BirchVocabularyBuilder:
     if not path.is_file():
         raise VocabularyError(f"{path}: no BIRCH state to extend; build the vocabulary with "
                               "--method birch first")
-    builder = pickle.loads(np.load(path)["state"].tobytes())  # noqa: S301 - written by us
-    # the state may come from a GPU machine: extend (refine the CF entries, few) on the CPU
-    builder.vocabulary_options = replace(builder.vocabulary_options, device="cpu")
-    return builder
+    return pickle.loads(np.load(path)["state"].tobytes())  # noqa: S301 - written by us

@@ -125,7 +125,7 @@ def build_fleet_vocabulary(session_dirs: list[str], path: str, options) -> dict:
     from cusfm_ros.io.vocabulary_file import save_vocabulary
     from cusfm_ros.pipeline.stages.vocabulary import birch_builder
 
-    builder = birch_builder(options.vocabulary, options.seed, options.device)
+    builder = birch_builder(options.vocabulary, options.seed)
     started = time.perf_counter()
     for descriptors in _descriptors(session_dirs):
         builder.insert(descriptors)

@@ -2,7 +2,7 @@
 
 Built from the dataset's own descriptors (paper section 3.2): recursive k-means with
 branching factor K and depth L, k-means++ seeding, every node of a level clustered at once in
-torch on the run's device (``kmeans.py``). Points may carry weights (BIRCH's clustering
+batched array products (``kmeans.py``). Points may carry weights (BIRCH's clustering
 features, see ``birch.py``), so the same builder refines an incrementally collected CF tree
 into the same structure.
 
@@ -36,14 +36,10 @@ class VocabularyOptions:
     """K^L leaves at most: 10^4 words by default."""
     kmeans_iterations: int = 20
     seed: int = 0
-    device: str = "cpu"
-    """Where the k-means runs (``cpu`` or ``cuda``); not stored with the vocabulary."""
 
     def __post_init__(self) -> None:
         if self.branching < 2 or self.depth < 1:
             raise ConfigError("vocabulary: branching must be >= 2 and depth >= 1")
-        if self.device not in ("cpu", "cuda"):
-            raise ConfigError(f"vocabulary: device must be cpu or cuda, got {self.device!r}")
 
 
 class VocabularyTree:
@@ -86,10 +82,9 @@ class VocabularyTree:
             if len(points) < k:
                 raise VocabularyError(f"need at least {k} descriptors for branching {k}, "
                                       f"got {len(points)}")
-            options = VocabularyOptions(k, shrunk, options.kmeans_iterations, options.seed,
-                                        options.device)
+            options = VocabularyOptions(k, shrunk, options.kmeans_iterations, options.seed)
         tree = hierarchical_kmeans(points, weights, k, options.depth,
-                                   options.kmeans_iterations, options.seed, options.device)
+                                   options.kmeans_iterations, options.seed)
         words = np.full(len(tree.leaf), -1, np.int64)
         words[tree.leaf] = np.arange(int(tree.leaf.sum()))
         tree = cls(tree.centroids, tree.children, words,

@@ -118,7 +118,7 @@ class MapStoreStage(Stage):
             else:  # the vocabulary stage was skipped: localization still needs one
                 vocabulary, _ = build_vocabulary(
                     [store.features(k.image_name).descriptors for k in keyframes.keyframes],
-                    options.vocabulary, options.seed, options.device)
+                    options.vocabulary, options.seed)
             prior_map = build_prior_map(keyframes, world_from_rig, points, store, vocabulary,
                                         features_section(options))
         manifest = write_map_store(run.map_dir, prior_map, run.mapping_poses.read_text())

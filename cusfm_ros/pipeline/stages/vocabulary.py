@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from cusfm_ros.core.retrieval.birch import BirchOptions, BirchVocabularyBuilder
-from cusfm_ros.core.retrieval.kmeans import torch_device
 from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions, VocabularyTree
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.vocabulary_file import save_birch, save_vocabulary
@@ -44,24 +43,19 @@ class VocabularyStageOptions:
             raise ConfigError(f"birch_threshold must be > 0, got {self.birch_threshold}")
 
 
-def _tree_options(options: VocabularyStageOptions, seed: int, device: str
-                  ) -> VocabularyOptions:
-    return VocabularyOptions(options.branching, options.depth, seed=seed,
-                             device=torch_device(device))
+def _tree_options(options: VocabularyStageOptions, seed: int) -> VocabularyOptions:
+    return VocabularyOptions(options.branching, options.depth, seed=seed)
 
 
-def birch_builder(options: VocabularyStageOptions, seed: int = 0, device: str = "cpu"
-                  ) -> BirchVocabularyBuilder:
+def birch_builder(options: VocabularyStageOptions, seed: int = 0) -> BirchVocabularyBuilder:
     """An empty BIRCH CF tree with these options (fed one image at a time, then solved)."""
     return BirchVocabularyBuilder(BirchOptions(threshold=options.birch_threshold),
-                                  _tree_options(options, seed, device))
+                                  _tree_options(options, seed))
 
 
 def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOptions,
-                     seed: int = 0, device: str = "cpu"
-                     ) -> tuple[VocabularyTree, BirchVocabularyBuilder | None]:
-    """A vocabulary over per-image descriptor arrays (and the BIRCH builder for ``birch``);
-    the k-means runs on ``device`` (``auto``: a CUDA GPU where torch sees one)."""
+                     seed: int = 0) -> tuple[VocabularyTree, BirchVocabularyBuilder | None]:
+    """A vocabulary over per-image descriptor arrays (and the BIRCH builder for ``birch``)."""
     total = sum(len(d) for d in documents)
     if not total:
         raise CusfmError("no descriptors to build a vocabulary from; run the features stage")
@@ -69,13 +63,13 @@ def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOption
     stacked = np.concatenate(documents)
     if len(stacked) > options.max_descriptors:
         stacked = stacked[rng.choice(len(stacked), options.max_descriptors, replace=False)]
-    vocab_options = _tree_options(options, seed, device)
-    logger.info("vocabulary: %s over %d of %d descriptors from %d images (K=%d, L=%d) on %s",
+    vocab_options = _tree_options(options, seed)
+    logger.info("vocabulary: %s over %d of %d descriptors from %d images (K=%d, L=%d)",
                 options.method, len(stacked), total, len(documents), options.branching,
-                options.depth, vocab_options.device)
+                options.depth)
     if options.method == "kmeans":
         return VocabularyTree.build(stacked, vocab_options, documents=documents), None
-    builder = birch_builder(options, seed, device)
+    builder = birch_builder(options, seed)
     for document in documents:  # streamed: memory follows the CF entries
         builder.insert(document)
     return builder.solve(documents), builder
@@ -94,8 +88,7 @@ class VocabularyStage(Stage):
         started = time.perf_counter()
         with open_features(run, options) as store:
             documents = [store.features(name).descriptors for name in store.feature_names()]
-        tree, builder = build_vocabulary(documents, options.vocabulary, options.seed,
-                                         options.device)
+        tree, builder = build_vocabulary(documents, options.vocabulary, options.seed)
         if builder is not None:
             save_birch(run.birch_state, builder)
         save_vocabulary(run.vocabulary, tree)
