@@ -5,6 +5,9 @@ test/conftest.py is imported by name, and a second one would shadow it.)"""
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -17,6 +20,22 @@ def ros_env():
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=DOMAIN_ID)
     os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=DOMAIN_ID)
     return env
+
+
+def stop(process: subprocess.Popen, signals=(signal.SIGTERM,), timeout_s: float = 20.0
+         ) -> tuple[int, str]:
+    """Send ``signals`` (50 ms apart) to a node still running, wait for it to end (killed, and
+    the timeout raised, past ``timeout_s``) -> its exit status and output."""
+    for signum in signals:
+        if process.poll() is None:
+            process.send_signal(signum)
+            time.sleep(0.05)
+    try:
+        code = process.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        raise
+    return code, process.stdout.read()
 
 
 def executable(name: str) -> str:

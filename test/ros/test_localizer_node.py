@@ -5,7 +5,6 @@ subscriber gets the latched MapInfo; SIGTERM ends the node with status 0."""
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import time
 
@@ -17,7 +16,7 @@ interfaces = pytest.importorskip("cusfm_ros_interfaces.srv")
 
 from cusfm_ros.cli.main import main  # noqa: E402
 
-from rostools import executable, ros_env  # noqa: E402,F401
+from rostools import executable, ros_env, stop  # noqa: E402,F401
 
 
 @pytest.fixture(scope="module")
@@ -156,13 +155,7 @@ def test_client_localizes_through_the_running_node(mapped, ros_env):
     finally:
         client_node.destroy_node()
         rclpy.try_shutdown()
-        node.send_signal(signal.SIGTERM)
-        try:
-            code = node.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            node.kill()
-            raise
-    output = node.stdout.read()
+        code, output = stop(node)
     assert code == 0, output
     assert "Traceback" not in output, output
 

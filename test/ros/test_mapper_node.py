@@ -16,7 +16,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("cusfm_ros_interfaces.msg")
 
-from rostools import executable, ros_env  # noqa: E402,F401
+from rostools import executable, ros_env, stop  # noqa: E402,F401
 
 
 @pytest.fixture(scope="module")
@@ -42,17 +42,6 @@ def _spin_until(node, condition, timeout_s):
     while not condition() and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.2)
     return condition()
-
-
-def _stop(process, timeout_s=20):
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
-    try:
-        code = process.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        raise
-    return code, process.stdout.read()
 
 
 def test_late_subscriber_gets_the_latched_results(sim, tmp_path, ros_env, models_ready):
@@ -97,7 +86,7 @@ def test_late_subscriber_gets_the_latched_results(sim, tmp_path, ros_env, models
     finally:
         client.destroy_node()
         rclpy.try_shutdown()
-        code, output = _stop(mapper)
+        code, output = stop(mapper)
     assert code == 0 and "Traceback" not in output, output
     assert "stage mapping done" in output and "ETA" in output  # the worker's log, relayed
     from rosbags.typesys import Stores, get_typestore  # rclpy message -> typestore message
@@ -152,15 +141,7 @@ def test_signal_during_the_run_stops_promptly_leaving_nothing_complete(sim, tmp_
     assert mapper.poll() is None, mapper.stdout.read()
     time.sleep(0.5)
     stopped = time.monotonic()
-    for signum in signals:  # SIGINT: what Ctrl-C sends
-        mapper.send_signal(signum)
-        time.sleep(0.05)
-    try:
-        code = mapper.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        mapper.kill()
-        raise
-    output = mapper.stdout.read()
+    code, output = stop(mapper, signals, timeout_s=10)  # SIGINT: what Ctrl-C sends
     assert time.monotonic() - stopped < 10
     assert code == -signals[0], output
     assert "Traceback" not in output and "rerun the same command to resume" in output, output
@@ -232,7 +213,7 @@ def test_extrinsic_calibration_node_publishes_the_refined_tf(tmp_path, ros_env, 
     finally:
         client.destroy_node()
         rclpy.try_shutdown()
-        code, output = _stop(node)
+        code, output = stop(node)
     assert code == 0 and "Traceback" not in output, output
     assert "front_stereo_left -> front_stereo_right" in output  # the report, logged
     refined = read_extrinsics(run / "extrinsics.yaml")

@@ -59,6 +59,25 @@ def _plus_plus(x: np.ndarray, x_norms: np.ndarray, weights: np.ndarray, k: int,
     return centres, valid
 
 
+def _assign(x: np.ndarray, centres: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(B, L) nearest real centre of every point: ``x (B, L, D)``, ``centres (B, K, D)``,
+    ``valid (B, K)``. |c|² - 2 x·c ranks the centres as |x - c|² does."""
+    score = (centres * centres).sum(-1)[:, None, :] - 2 * (x @ centres.transpose(0, 2, 1))
+    return np.where(valid[:, None, :], score, np.inf).argmin(-1)
+
+
+def _update(x: np.ndarray, weights: np.ndarray, labels: np.ndarray, centres: np.ndarray
+            ) -> np.ndarray:
+    """Lloyd's update: each centre the weighted mean of its points (one product per row);
+    an emptied cluster keeps its centre."""
+    members = (labels[:, :, None] == np.arange(centres.shape[1])) * \
+        weights[:, :, None].astype(x.dtype)
+    mass = members.sum(1)  # (B, K)
+    sums = members.transpose(0, 2, 1) @ x
+    return np.where(mass[:, :, None] > 0, sums / np.where(mass > 0, mass, 1)[:, :, None],
+                    centres)
+
+
 def batched_kmeans(x: np.ndarray, weights: np.ndarray, k: int, iterations: int,
                    rng: np.random.Generator, tolerance: float = 1e-3
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -71,23 +90,14 @@ def batched_kmeans(x: np.ndarray, weights: np.ndarray, k: int, iterations: int,
     real = weights > 0
     real_count = max(int(real.sum()), 1)
     labels = None
-    clusters = np.arange(k)
     for _ in range(iterations + 1):  # the last pass only assigns
-        # |c|² - 2 x·c ranks the centres as |x - c|² does
-        score = (centres * centres).sum(-1)[:, None, :] - 2 * (x @ centres.transpose(0, 2, 1))
-        score = np.where(valid[:, None, :], score, np.inf)
-        new_labels = score.argmin(-1)
+        new_labels = _assign(x, centres, valid)
         if labels is not None and int(((new_labels != labels) & real).sum()) <= (
                 tolerance * real_count):
             labels = new_labels
             break
         labels = new_labels
-        # weighted sums per cluster as one product per row
-        members = (labels[:, :, None] == clusters) * weights[:, :, None].astype(x.dtype)
-        mass = members.sum(1)  # (B, K)
-        sums = members.transpose(0, 2, 1) @ x
-        centres = np.where(mass[:, :, None] > 0,
-                           sums / np.where(mass > 0, mass, 1)[:, :, None], centres)
+        centres = _update(x, weights, labels, centres)
     return centres, labels, valid
 
 
@@ -117,6 +127,7 @@ def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int,
     children = np.full((1, k), -1, np.int64)
     node = np.zeros(len(points), np.int64)  # every point's node at this level; -1: in a leaf
     frontier = np.array([0])
+    cap = max(int(2 ** np.ceil(np.log2(train_points_per_node))), k)
     for level in range(depth):
         count = len(children)
         alive = node >= 0
@@ -130,7 +141,6 @@ def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int,
         starts = np.searchsorted(node[order], split)
         sizes = np.bincount(node[order], minlength=count)[split]
         next_frontier = []
-        cap = max(int(2 ** np.ceil(np.log2(train_points_per_node))), k)
         padded = _padded(sizes, k, cap)
         for batch_number, length in enumerate(np.unique(padded).tolist()):
             members = np.nonzero(padded == length)[0]
@@ -154,14 +164,11 @@ def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int,
                 point_labels = labels[point_rows, point_cols]
                 for row in np.nonzero(sampled)[0]:
                     ids = order[starts[group[row]]:starts[group[row]] + sizes[group[row]]]
-                    x_node = x_all[ids]
-                    score = (centres[row] * centres[row]).sum(1) - 2 * (x_node @ centres[row].T)
-                    assigned = np.where(valid[row], score, np.inf).argmin(1)
+                    x_node, one = x_all[ids][None], slice(row, row + 1)
+                    assigned = _assign(x_node, centres[one], valid[one])
                     # one last update step over all of the node's points
-                    members = (assigned[:, None] == np.arange(k)) * w_all[ids][:, None]
-                    mass = members.sum(0)
-                    centres[row] = np.where(mass[:, None] > 0, (members.T @ x_node) /
-                                            np.where(mass > 0, mass, 1)[:, None], centres[row])
+                    centres[one] = _update(x_node, w_all[ids][None], assigned, centres[one])
+                    assigned = assigned[0]
                     point_rows = np.r_[point_rows, np.full(len(ids), row)]
                     point_ids = np.r_[point_ids, ids]
                     point_labels = np.r_[point_labels, assigned]
