@@ -16,7 +16,7 @@ from cusfm_ros.core.features.knn import KnnMatcher, KnnOptions
 from cusfm_ros.core.features.lightglue import LightGlueMatcher
 from cusfm_ros.core.features.sift import SiftExtractor, SiftOptions
 from cusfm_ros.core.features.types import Features, FeatureError
-from cusfm_ros.errors import CusfmError
+from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.models.store import ensure_models, read_manifest
 
 torch = pytest.importorskip("torch", reason="torch (build-time) checks the ONNX export")
@@ -278,12 +278,73 @@ def test_knn_recovers_known_correspondences(rng):
         assert len(matches) == 300
         np.testing.assert_array_equal(perm[matches.indices[:, 1]], matches.indices[:, 0])
     # an ambiguous descriptor (two equally near candidates) fails the ratio test
+    step = rng.normal(size=32).astype(np.float32) * 0.05
     ambiguous = Features(np.zeros((2, 2), np.float32), np.ones(2, np.float32),
-                         np.stack([d0[0], d0[0] + 1e-4]), (1, 1))
+                         np.stack([d0[0] + step, d0[0] - step]), (1, 1))
     single = Features(np.zeros((1, 2), np.float32), np.ones(1, np.float32), d0[:1], (1, 1))
     assert len(KnnMatcher(KnnOptions(mutual=False)).match(single, ambiguous)) == 0
     with pytest.raises(FeatureError, match="descriptor dimensions differ"):
         KnnMatcher().match(f0, Features.empty(16, (1, 1)))
+
+
+def _overlapping_descriptors(rng):
+    """Two descriptor sets that share 150 of 300 (noisy), with a duplicate of row 0 in the
+    first: one correspondence each, and a tie that must match once."""
+    d0 = rng.normal(size=(300, 32)).astype(np.float32)
+    d1 = np.concatenate([d0[:150] + rng.normal(scale=0.05, size=(150, 32)),
+                         rng.normal(size=(200, 32))]).astype(np.float32)
+    d0[299] = d0[0]
+    return [Features(np.zeros((len(d), 2), np.float32), np.ones(len(d), np.float32), d, (1, 1))
+            for d in (d0, d1)]
+
+
+def test_knn_dense_and_blocked_paths_agree_and_a_tie_matches_once(rng, monkeypatch):
+    import cusfm_ros.core.features.knn as knn
+
+    f0, f1 = _overlapping_descriptors(rng)
+    for options in (KnnOptions(), KnnOptions(ratio=1.0), KnnOptions(metric="cosine")):
+        dense = KnnMatcher(options).match(f0, f1)
+        with monkeypatch.context() as patch:
+            patch.setattr(knn, "DENSE_LIMIT", 0)  # the blocked path, argmin both ways
+            blocked = KnnMatcher(options).match(f0, f1)
+        np.testing.assert_array_equal(dense.indices, blocked.indices)
+        np.testing.assert_allclose(dense.confidences, blocked.confidences, atol=1e-5)
+        # the shared part matches itself; row 299 (a copy of row 0) loses the tie to row 0
+        shared = dense.indices[dense.indices[:, 1] < 150]
+        assert len(shared) >= 140 and np.all(shared[:, 0] == shared[:, 1])
+        assert 0 in shared[:, 0] and 299 not in dense.indices[:, 0]
+        assert len(np.unique(dense.indices[:, 1])) == len(dense)
+
+
+def test_knn_torch_distances_equal_numpys(rng):
+    """The GPU path's code on CPU tensors (CI has no GPU)."""
+    import cusfm_ros.core.features.knn as knn
+
+    f0, f1 = _overlapping_descriptors(rng)
+    ours = knn._dense_nearest(f0.descriptors, f1.descriptors)
+    theirs = knn._dense_nearest_torch(torch, f0.descriptors, f1.descriptors, "cpu")
+    np.testing.assert_array_equal(ours[0], theirs[0])
+    np.testing.assert_array_equal(ours[3], theirs[3])
+    np.testing.assert_allclose(ours[1], theirs[1], atol=1e-4)
+    np.testing.assert_allclose(ours[2], theirs[2], atol=1e-4)
+
+
+@pytest.mark.gpu
+def test_knn_on_cuda_equals_cpu(rng):
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    f0, f1 = _overlapping_descriptors(rng)
+    cpu, cuda = KnnMatcher().match(f0, f1), KnnMatcher(device="cuda").match(f0, f1)
+    np.testing.assert_array_equal(cpu.indices, cuda.indices)
+
+
+def test_knn_device_cuda_without_a_gpu_says_so():
+    from cusfm_ros.core import accelerator
+
+    if accelerator.cuda_torch("auto") is not None:
+        pytest.skip("this machine has a GPU")
+    with pytest.raises(ConfigError, match="--device cuda"):
+        KnnMatcher(device="cuda")
 
 
 def test_cli_match_json(tmp_path, capsys, motorcycle):

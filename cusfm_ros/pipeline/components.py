@@ -133,7 +133,7 @@ def make_extractor(options: FeatureOptions, device: str = "auto"):
 def make_matcher(options: FeatureOptions, device: str = "auto"):
     matcher = options.matcher
     if matcher.name == "knn":
-        return KnnMatcher(matcher.knn)
+        return KnnMatcher(matcher.knn, device)
     learned = replace(matcher.selected, device=device)
     if options.use_torch(device):
         from cusfm_ros.models.torch_backend import TorchLightGlueMatcher

@@ -1,4 +1,5 @@
-"""Mutual nearest-neighbour matching with Lowe's ratio test, vectorized and batched."""
+"""Mutual nearest-neighbour matching with Lowe's ratio test, vectorized and batched; the
+distance matrix on the GPU (torch) when the device is one."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cusfm_ros.core.accelerator import cuda_torch
 from cusfm_ros.core.features.types import FeatureError, Features, Matches
 from cusfm_ros.errors import ConfigError
 
@@ -45,31 +47,68 @@ def _nearest_two(a: np.ndarray, b: np.ndarray, batch: int) -> tuple[np.ndarray, 
     return indices, dists
 
 
-def _dense_nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One distance matrix for both directions (when it fits): each row's nearest column,
-    its nearest and second-nearest squared distances, and each column's nearest row."""
-    d = (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2.0 * a @ b.T
+def _dense_nearest(a: np.ndarray, b: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One distance matrix for both directions (when it fits): each row's nearest column, its
+    nearest and second-nearest squared distances, and whether it is as near as any row to that
+    column (a mutual candidate; ``_first_of_ties`` settles ties)."""
+    d = a @ b.T  # in place from here: no (N, M) temporaries
+    d *= -2.0
+    d += (b * b).sum(1)[None]
+    d += (a * a).sum(1)[:, None]
     np.maximum(d, 0, out=d)
     rows = np.arange(len(a))
     first = d.argmin(1)
     best = d[rows, first]
-    col_best = d.argmin(0)
+    # a column's minimum, not its argmin: numpy's argmin over axis 0 is strided and took
+    # 14 ms of 27 per 2000 x 2000 pair, its min 0.6 ms
+    mutual = best <= d.min(0)[first]
     d[rows, first] = np.inf
     second = d.min(1) if d.shape[1] > 1 else np.full(len(a), np.inf, np.float32)
-    return first, np.stack([best, second], 1), col_best
+    return first, best, second, mutual
+
+
+def _dense_nearest_torch(torch, a: np.ndarray, b: np.ndarray, device: str = "cuda"
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``_dense_nearest`` with torch on ``device`` (float32 products, no TF32)."""
+    ta, tb = torch.from_numpy(a).to(device), torch.from_numpy(b).to(device)
+    d = ta @ tb.T
+    d.mul_(-2.0).add_((tb * tb).sum(1)[None]).add_((ta * ta).sum(1)[:, None]).clamp_(min=0)
+    rows = torch.arange(len(a), device=d.device)
+    first = d.argmin(1)
+    best = d[rows, first]
+    mutual = best <= d.min(0).values[first]
+    d[rows, first] = float("inf")
+    second = d.min(1).values if d.shape[1] > 1 else torch.full_like(best, float("inf"))
+    return tuple(t.cpu().numpy() for t in (first, best, second, mutual))
+
+
+def _first_of_ties(nearest: np.ndarray, mutual: np.ndarray) -> np.ndarray:
+    """Of the mutual candidates that share a nearest column (rows at exactly the same
+    distance), only the first stays: one match per column."""
+    candidates = np.nonzero(mutual)[0]
+    _, firsts = np.unique(nearest[candidates], return_index=True)
+    kept = np.zeros_like(mutual)
+    kept[candidates[firsts]] = True
+    return kept
 
 
 DENSE_LIMIT = 16_000_000
 """Distance matrices up to this many entries (64 MB) are computed once for both directions."""
+GPU_DENSE_LIMIT = 256_000_000
+"""The same on the GPU (1 GB); larger pairs take the CPU's blocked path."""
 
 
 class KnnMatcher:
     name = "knn"
     parallel_pairs = True
-    """Pairs may be matched at once on CPU threads (numpy releases the GIL)."""
+    """Pairs may be matched at once on CPU threads (numpy and torch release the GIL)."""
 
-    def __init__(self, options: KnnOptions = KnnOptions()) -> None:
+    def __init__(self, options: KnnOptions = KnnOptions(), device: str = "cpu") -> None:
+        """``device``: ``cuda`` (or ``auto`` with a GPU) computes the distances with torch on
+        the GPU; the matches equal the CPU's up to float rounding of near ties."""
         self.options = options
+        self.torch = cuda_torch(device)
 
     def config(self) -> dict:
         return {"name": self.name, **self.options.__dict__}
@@ -84,9 +123,13 @@ class KnnMatcher:
             d0 = d0 / np.maximum(np.linalg.norm(d0, axis=1, keepdims=True), 1e-12)
             d1 = d1 / np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-12)
         d0, d1 = d0.astype(np.float32), d1.astype(np.float32)
-        dense = len(d0) * len(d1) <= DENSE_LIMIT
+        size = len(d0) * len(d1)
+        dense = size <= (DENSE_LIMIT if self.torch is None else GPU_DENSE_LIMIT)
         if dense:
-            best, dist01, col_best = _dense_nearest(d0, d1)
+            best, nearest, second, mutual = (
+                _dense_nearest(d0, d1) if self.torch is None
+                else _dense_nearest_torch(self.torch, d0, d1))
+            dist01 = np.stack([nearest, second], 1)
         else:
             nn01, dist01 = _nearest_two(d0, d1, self.options.batch_size)
             best = nn01[:, 0]
@@ -94,9 +137,11 @@ class KnnMatcher:
         if self.options.ratio < 1 and len(d1) > 1:
             keep &= np.sqrt(dist01[:, 0]) < self.options.ratio * np.sqrt(dist01[:, 1])
         if self.options.mutual:
-            if not dense:
+            if dense:
+                keep &= _first_of_ties(best, mutual)
+            else:
                 col_best = _nearest_two(d1, d0, self.options.batch_size)[0][:, 0]
-            keep &= col_best[best] == np.arange(len(d0))
+                keep &= col_best[best] == np.arange(len(d0))
         index0 = np.nonzero(keep)[0]
         distance = np.sqrt(dist01[index0, 0])
         # a similarity in [0, 1] for unit descriptors (distance 0 -> 1, distance 2 -> 0)
