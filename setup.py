@@ -24,6 +24,7 @@ setup(
         "numpy>=1.26", "scipy>=1.11", "opencv-python-headless>=4.9", "onnxruntime>=1.25.1",
         "gtsam>=4.2", "rosbags>=0.10", "PyYAML>=6",
         "h5py>=3.9", "scikit-learn>=1.3", "scikit-image>=0.22", "threadpoolctl>=3",
+        "array-api-compat>=1.9",
         "matplotlib>=3.8", "tqdm>=4.60",
     ],
     zip_safe=False,

@@ -37,6 +37,27 @@ def test_tree_build_quantize_save_load(tmp_path, rng):
     assert again.options.branching == 4 and again.options.depth == 3
 
 
+@pytest.mark.parametrize("kind", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_quantize_in_chunks_and_with_torch_gives_the_same_words(rng, kind):
+    """The descent is the same on numpy, in any chunk size, and with torch (the GPU path's
+    code, on CPU tensors in CI); a brute-force descent checks the words themselves."""
+    points, _ = clustered(rng, clusters=16, per_cluster=100)
+    tree = VocabularyTree.build(points, SMALL)
+    words = tree.quantize(points)
+    np.testing.assert_array_equal(tree.quantize(points, chunk=7), words)
+    expected = []
+    for point in points:  # one point at a time, straight from the definition
+        node = 0
+        while (tree.children[node] >= 0).any():
+            kids = tree.children[node][tree.children[node] >= 0]
+            node = kids[np.argmin(((tree.centroids[kids] - point) ** 2).sum(1))]
+        expected.append(tree.words[node])
+    np.testing.assert_array_equal(words, expected)
+    tree.arrays = _arrays(kind)
+    tree._there = None
+    np.testing.assert_array_equal(tree.quantize(points), words)
+
+
 def test_build_is_seeded_and_deterministic(rng):
     points, _ = clustered(rng)
     first, again = VocabularyTree.build(points, SMALL), VocabularyTree.build(points, SMALL)
@@ -46,9 +67,22 @@ def test_build_is_seeded_and_deterministic(rng):
     assert not np.array_equal(first.quantize(points), other.quantize(points))
 
 
-def test_kmeans_tree_clusters_every_node_and_caps_the_training_sample(rng):
+def _arrays(kind):
+    from cusfm_ros.core.retrieval.kmeans import Arrays
+
+    if kind == "numpy":
+        return Arrays()
+    torch = pytest.importorskip("torch")
+    if kind == "cuda" and not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    return Arrays(torch, kind)
+
+
+@pytest.mark.parametrize("kind", ["numpy", "cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_kmeans_tree_clusters_every_node_and_caps_the_training_sample(rng, kind):
     """Nested clusters come out as the tree's levels, each leaf centroid the mean of its
-    cluster, also where a node trained on a sample of its points and then assigned all."""
+    cluster, also where a node trained on a sample of its points and then assigned all; with
+    numpy, and with torch (the GPU path's code, on CPU tensors in CI)."""
     from cusfm_ros.core.retrieval.kmeans import hierarchical_kmeans
 
     # 3 x 3 x 3 nested clusters (scales 10, 1, 0.1): the tree must find the nesting
@@ -58,7 +92,7 @@ def test_kmeans_tree_clusters_every_node_and_caps_the_training_sample(rng):
     points = (centres + 0.005 * rng.normal(size=centres.shape)).astype(np.float32)
     for cap in (4096, 64):  # 64 < 1620 points at the root: trained on a sample
         tree = hierarchical_kmeans(points, np.ones(len(points)), 3, 3, 50, seed=0,
-                                   train_points_per_node=cap)
+                                   train_points_per_node=cap, arrays=_arrays(kind))
         assert tree.leaf.sum() == 27 and len(tree.centroids) == 1 + 3 + 9 + 27
         vocabulary = VocabularyTree(tree.centroids, tree.children,
                                     np.where(tree.leaf, np.cumsum(tree.leaf) - 1, -1),

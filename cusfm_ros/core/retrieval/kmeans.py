@@ -1,15 +1,20 @@
-"""Hierarchical k-means one tree level at a time, as batched array products (numpy).
+"""Hierarchical k-means one tree level at a time, as batched array products (numpy, or
+torch on a GPU).
 
 Every node of a level is clustered at once: its points are gathered into a padded batch
 (nodes of similar size share a batch, padded to the next power of two), seeded by
 k-means++ and refined by weighted Lloyd iterations, all as stacked matrix products. Written
 by hand because the kept libraries cluster one set at a time: scikit-learn's KMeans called
 once per node (1,111 calls for a 10^4-word tree) took 11.6 s for 209k SIFT descriptors on two
-cores, most of it per-call overhead and k-means++ seeding. numpy, not torch: torch is not a
-runtime dependency (the CPU path runs on ONNX Runtime, and the ROS environment has no torch).
+cores, most of it per-call overhead and k-means++ seeding.
+
+The batched steps are written against the array API standard (``array-api-compat``), so one
+code runs on numpy (the CPU path: torch is not a runtime dependency, the ROS environment has
+none) and on torch tensors on a CUDA GPU (``Arrays.for_device``); the tree's bookkeeping
+stays numpy.
 
 Random draws come from a numpy generator seeded by (seed, level, batch), never from a global
-RNG, so a build is deterministic.
+RNG, so a build is deterministic (on the GPU up to float rounding of near ties).
 """
 
 from __future__ import annotations
@@ -17,6 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from array_api_compat import array_namespace
+from array_api_compat import device as device_of
+
+from cusfm_ros.core.accelerator import cuda_torch
 
 
 @dataclass
@@ -29,70 +38,107 @@ class Tree:
     leaf: np.ndarray
 
 
-def _squared_distances(x: np.ndarray, x_norms: np.ndarray, centres: np.ndarray
-                       ) -> np.ndarray:
+@dataclass(frozen=True)
+class Arrays:
+    """Where the batched products run: numpy (``torch`` None), or torch on ``device``."""
+
+    torch: object | None = None
+    device: str = "cpu"
+
+    @classmethod
+    def for_device(cls, device: str) -> Arrays:
+        """numpy for ``cpu``; torch on the GPU for ``cuda`` (and ``auto`` when there is one)."""
+        torch = cuda_torch(device)
+        return cls() if torch is None else cls(torch, "cuda")
+
+    def put(self, array: np.ndarray):
+        if self.torch is None:
+            return array
+        return self.torch.from_numpy(np.ascontiguousarray(array)).to(self.device)
+
+    def get(self, array) -> np.ndarray:
+        return array if self.torch is None else array.cpu().numpy()
+
+
+def _transposed(xp, a):
+    return xp.permute_dims(a, (0, 2, 1))
+
+
+def _squared_distances(x, x_norms, centres):
     """(B, L, D) points, their (B, L) squared norms, (B, K, D) centres -> (B, L, K)."""
-    products = x @ centres.transpose(0, 2, 1)
-    return np.maximum(x_norms[:, :, None] - 2 * products
-                      + (centres * centres).sum(-1)[:, None, :], 0)
+    xp = array_namespace(x)
+    products = x @ _transposed(xp, centres)
+    return xp.clip(x_norms[:, :, None] - 2 * products
+                   + xp.sum(centres * centres, axis=-1)[:, None, :], min=0)
 
 
-def _plus_plus(x: np.ndarray, x_norms: np.ndarray, weights: np.ndarray, k: int,
-               uniforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _plus_plus(x, x_norms, weights, k: int, uniforms):
     """k-means++ seeding of every batch row: (B, K, D) centres and (B, K) which of them are
     real (a row with fewer than K distinct points runs out of candidates)."""
-    rows = np.arange(len(x))
-    centres = np.zeros((len(x), k, x.shape[2]), x.dtype)
-    valid = np.zeros((len(x), k), bool)
-    mass = weights.astype(np.float64)
+    xp = array_namespace(x)
+    where = device_of(x)
+    rows = xp.arange(x.shape[0], device=where)
+    centres = xp.zeros((x.shape[0], k, x.shape[2]), dtype=x.dtype, device=where)
+    valid = xp.zeros((x.shape[0], k), dtype=xp.bool, device=where)
+    mass = xp.astype(weights, xp.float64)
     closest = None
     for j in range(k):
-        cumulative = np.cumsum(mass, 1)
+        cumulative = xp.cumulative_sum(mass, axis=1)
         total = cumulative[:, -1]
         target = uniforms[j] * total
-        pick = np.minimum((cumulative <= target[:, None]).sum(1), x.shape[1] - 1)
+        pick = xp.clip(xp.sum(xp.astype(cumulative <= target[:, None], xp.int64), axis=1),
+                       max=x.shape[1] - 1)
         valid[:, j] = total > 0
         centres[:, j] = x[rows, pick]
         distance = _squared_distances(x, x_norms, centres[:, j:j + 1])[:, :, 0]
-        closest = distance if closest is None else np.minimum(closest, distance)
-        mass = weights * closest.astype(np.float64)
+        closest = distance if closest is None else xp.minimum(closest, distance)
+        mass = xp.astype(weights, xp.float64) * xp.astype(closest, xp.float64)
     return centres, valid
 
 
-def _assign(x: np.ndarray, centres: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def _assign(x, centres, valid):
     """(B, L) nearest real centre of every point: ``x (B, L, D)``, ``centres (B, K, D)``,
     ``valid (B, K)``. |c|² - 2 x·c ranks the centres as |x - c|² does."""
-    score = (centres * centres).sum(-1)[:, None, :] - 2 * (x @ centres.transpose(0, 2, 1))
-    return np.where(valid[:, None, :], score, np.inf).argmin(-1)
+    xp = array_namespace(x)
+    score = xp.sum(centres * centres, axis=-1)[:, None, :] - 2 * (x @ _transposed(xp, centres))
+    return xp.argmin(xp.where(valid[:, None, :], score, xp.full_like(score, xp.inf)), axis=-1)
 
 
-def _update(x: np.ndarray, weights: np.ndarray, labels: np.ndarray, centres: np.ndarray
-            ) -> np.ndarray:
+def _update(x, weights, labels, centres):
     """Lloyd's update: each centre the weighted mean of its points (one product per row);
     an emptied cluster keeps its centre."""
-    members = (labels[:, :, None] == np.arange(centres.shape[1])) * \
-        weights[:, :, None].astype(x.dtype)
-    mass = members.sum(1)  # (B, K)
-    sums = members.transpose(0, 2, 1) @ x
-    return np.where(mass[:, :, None] > 0, sums / np.where(mass > 0, mass, 1)[:, :, None],
-                    centres)
+    xp = array_namespace(x)
+    clusters = xp.arange(centres.shape[1], device=device_of(x))
+    members = xp.astype(labels[:, :, None] == clusters, x.dtype) * \
+        xp.astype(weights, x.dtype)[:, :, None]
+    mass = xp.sum(members, axis=1)  # (B, K)
+    sums = _transposed(xp, members) @ x
+    filled = mass > 0
+    return xp.where(filled[:, :, None],
+                    sums / xp.where(filled, mass, xp.ones_like(mass))[:, :, None], centres)
 
 
-def batched_kmeans(x: np.ndarray, weights: np.ndarray, k: int, iterations: int,
-                   rng: np.random.Generator, tolerance: float = 1e-3
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _count(xp, mask) -> int:
+    return int(xp.sum(xp.astype(mask, xp.int64)))
+
+
+def batched_kmeans(x, weights, k: int, iterations: int, rng: np.random.Generator,
+                   tolerance: float = 1e-3):
     """Weighted k-means on every row of a padded batch: ``x (B, L, D)``, ``weights (B, L)``
-    (0 on padding) -> centres (B, K, D), labels (B, L) and (B, K) which centres are real.
-    Lloyd stops after ``iterations`` or once fewer than ``tolerance`` of the real points
-    change cluster; an emptied cluster keeps its centre."""
-    x_norms = (x * x).sum(-1)
-    centres, valid = _plus_plus(x, x_norms, weights, k, rng.random((k, len(x))))
+    (0 on padding), numpy arrays or torch tensors -> centres (B, K, D), labels (B, L) and
+    (B, K) which centres are real, of the same kind. Lloyd stops after ``iterations`` or
+    once fewer than ``tolerance`` of the real points change cluster; an emptied cluster keeps
+    its centre."""
+    xp = array_namespace(x)
+    x_norms = xp.sum(x * x, axis=-1)
+    uniforms = xp.asarray(rng.random((k, x.shape[0])), device=device_of(x))
+    centres, valid = _plus_plus(x, x_norms, weights, k, uniforms)
     real = weights > 0
-    real_count = max(int(real.sum()), 1)
+    real_count = max(_count(xp, real), 1)
     labels = None
     for _ in range(iterations + 1):  # the last pass only assigns
         new_labels = _assign(x, centres, valid)
-        if labels is not None and int(((new_labels != labels) & real).sum()) <= (
+        if labels is not None and _count(xp, (new_labels != labels) & real) <= (
                 tolerance * real_count):
             labels = new_labels
             break
@@ -111,17 +157,19 @@ def _padded(sizes: np.ndarray, k: int, cap: int) -> np.ndarray:
 def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int, depth: int,
                         iterations: int, seed: int,
                         train_points_per_node: int = 4096,
-                        max_batch_elements: int = 1 << 26) -> Tree:
+                        max_batch_elements: int = 1 << 26, arrays: Arrays = Arrays()) -> Tree:
     """The tree of recursive k-means with ``branching`` children per node, ``depth`` levels
     below the root. A node becomes a leaf at ``depth``, with fewer points than
     ``branching``, or when its points fall into fewer than two clusters (duplicates).
     A node with more than ``train_points_per_node`` points (the upper levels) trains its
     centres on a seeded sample of that many, then assigns all of its points and takes one
     last update step over them: the FLOPs of a level stay bounded. ``max_batch_elements`` bounds
-    one padded batch (points x dimensions)."""
+    one padded batch (points x dimensions). ``arrays``: where the batched products run (the
+    points are copied there once)."""
     k = branching
     x_all = np.ascontiguousarray(points, np.float32)
     w_all = np.asarray(weights, np.float32)
+    x_there, w_there = arrays.put(x_all), arrays.put(w_all)
     dim = x_all.shape[1]
     centroids = [np.zeros((1, dim), np.float32)]
     children = np.full((1, k), -1, np.int64)
@@ -156,22 +204,28 @@ def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int,
                     within[row] = np.sort(rng.choice(sizes[group[row]], length, replace=False))
                 index = np.where(real, order[np.minimum(starts[group][:, None] + within,
                                                         len(order) - 1)], 0)
-                centres, labels, valid = batched_kmeans(x_all[index], w_all[index] * real, k,
-                                                        iterations, rng)
+                there = arrays.put(index)
+                centres, labels, valid = batched_kmeans(
+                    x_there[there], w_there[there] * arrays.put(real.astype(np.float32)), k,
+                    iterations, rng)
+                labels, valid = arrays.get(labels), arrays.get(valid)
                 # every point of the node and its cluster
                 point_rows, point_cols = np.nonzero(real & ~sampled[:, None])
                 point_ids = index[point_rows, point_cols]
                 point_labels = labels[point_rows, point_cols]
                 for row in np.nonzero(sampled)[0]:
                     ids = order[starts[group[row]]:starts[group[row]] + sizes[group[row]]]
-                    x_node, one = x_all[ids][None], slice(row, row + 1)
-                    assigned = _assign(x_node, centres[one], valid[one])
+                    one, ids_there = slice(row, row + 1), arrays.put(ids)
+                    x_node = x_there[ids_there][None]
+                    assigned = _assign(x_node, centres[one], arrays.put(valid[one]))
                     # one last update step over all of the node's points
-                    centres[one] = _update(x_node, w_all[ids][None], assigned, centres[one])
-                    assigned = assigned[0]
+                    centres[one] = _update(x_node, w_there[ids_there][None], assigned,
+                                           centres[one])
+                    assigned = arrays.get(assigned[0])
                     point_rows = np.r_[point_rows, np.full(len(ids), row)]
                     point_ids = np.r_[point_ids, ids]
                     point_labels = np.r_[point_labels, assigned]
+                centres = arrays.get(centres)
                 filled = np.zeros((len(group), k), bool)
                 filled[point_rows, point_labels] = True
                 filled &= valid

@@ -17,8 +17,10 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from array_api_compat import array_namespace
+from array_api_compat import device as device_of
 
-from cusfm_ros.core.retrieval.kmeans import hierarchical_kmeans
+from cusfm_ros.core.retrieval.kmeans import Arrays, hierarchical_kmeans
 from cusfm_ros.errors import ConfigError, CusfmError
 
 logger = logging.getLogger(__name__)
@@ -42,6 +44,24 @@ class VocabularyOptions:
             raise ConfigError("vocabulary: branching must be >= 2 and depth >= 1")
 
 
+def _descend(centroids, squared_norms, children, points):
+    """The leaf node of each point (numpy arrays or torch tensors): at every level, the child
+    centre nearest to it. |c|² - 2 p·c ranks the children as |p - c|² does, without an
+    (n, K, D) difference array (3.4x faster on 40k SIFT descriptors)."""
+    xp = array_namespace(points)
+    node = xp.zeros(points.shape[0], dtype=xp.int64, device=device_of(points))
+    while True:
+        kids = children[node]  # (N, K)
+        inner = xp.any(kids >= 0, axis=1)
+        if not bool(xp.any(inner)):
+            return node
+        safe = xp.where(kids >= 0, kids, xp.zeros_like(kids))
+        distance = squared_norms[safe] - 2 * (centroids[safe] @ points[:, :, None])[:, :, 0]
+        distance = xp.where(kids >= 0, distance, xp.full_like(distance, xp.inf))
+        nearest = xp.take_along_axis(kids, xp.argmin(distance, axis=1)[:, None], axis=1)[:, 0]
+        node = xp.where(inner, nearest, node)
+
+
 class VocabularyTree:
     def __init__(self, centroids: np.ndarray, children: np.ndarray, words: np.ndarray,
                  idf: np.ndarray, options: VocabularyOptions) -> None:
@@ -50,7 +70,8 @@ class VocabularyTree:
         self.words = words
         self.idf = idf
         self.options = options
-        self._squared_norms: np.ndarray | None = None
+        self.arrays = Arrays()
+        self._there: tuple | None = None  # centroids, squared norms, children on the device
 
     @property
     def num_words(self) -> int:
@@ -64,9 +85,12 @@ class VocabularyTree:
     @classmethod
     def build(cls, descriptors: np.ndarray, options: VocabularyOptions = VocabularyOptions(),
               weights: np.ndarray | None = None,
-              documents: list[np.ndarray] | None = None) -> VocabularyTree:
+              documents: list[np.ndarray] | None = None, device: str = "cpu"
+              ) -> VocabularyTree:
         """Hierarchical k-means over (weighted) descriptors; ``documents`` (descriptor sets
-        per image) give the IDF weights, else every word gets IDF 1."""
+        per image) give the IDF weights, else every word gets IDF 1. ``device``: ``cuda`` (or
+        ``auto`` with a GPU) runs the k-means (and the tree's quantization) with torch on the
+        GPU."""
         points = np.ascontiguousarray(descriptors, dtype=np.float32)
         if points.ndim != 2 or len(points) == 0:
             raise VocabularyError("no descriptors to build a vocabulary from")
@@ -84,11 +108,12 @@ class VocabularyTree:
                                       f"got {len(points)}")
             options = VocabularyOptions(k, shrunk, options.kmeans_iterations, options.seed)
         tree = hierarchical_kmeans(points, weights, k, options.depth,
-                                   options.kmeans_iterations, options.seed)
+                                   options.kmeans_iterations, options.seed,
+                                   arrays=Arrays.for_device(device))
         words = np.full(len(tree.leaf), -1, np.int64)
         words[tree.leaf] = np.arange(int(tree.leaf.sum()))
         tree = cls(tree.centroids, tree.children, words,
-                   np.ones(int(tree.leaf.sum()), np.float32), options)
+                   np.ones(int(tree.leaf.sum()), np.float32), options).use_device(device)
         if documents is not None:
             tree.set_idf(documents)
         return tree
@@ -104,31 +129,30 @@ class VocabularyTree:
         self.idf = np.log(max(images, 1) / np.maximum(counts, 1)).astype(np.float32)
 
     # --------------------------------------------------------------------------- quantize
-    def quantize(self, descriptors: np.ndarray) -> np.ndarray:
-        """Word id (N,) of each descriptor: greedy descent through the tree (vectorized)."""
+    def use_device(self, device: str) -> VocabularyTree:
+        """Quantize on ``device`` from now on (``cuda``: torch on the GPU); returns self."""
+        self.arrays, self._there = Arrays.for_device(device), None
+        return self
+
+    def quantize(self, descriptors: np.ndarray, chunk: int = 4096) -> np.ndarray:
+        """Word id (N,) of each descriptor: greedy descent through the tree, ``chunk``
+        descriptors at a time (bounds the (chunk, K, D) gathered centroids: 400k SIFT
+        descriptors in 0.97 s on 2 cores, 8.5 s all at once), on numpy or on the GPU
+        (``use_device``)."""
         points = np.asarray(descriptors, dtype=np.float32)
         if points.ndim != 2 or (len(points) and points.shape[1] != self.dim):
             raise VocabularyError(f"descriptors have dimension {points.shape[-1]} but the "
                                   f"vocabulary was built for {self.dim}; rebuild it for these "
                                   "features")
-        if self._squared_norms is None:
-            self._squared_norms = np.einsum("md,md->m", self.centroids, self.centroids)
-        node = np.zeros(len(points), np.int64)
-        while True:
-            kids = self.children[node]  # (N, K)
-            inner = (kids >= 0).any(axis=1)
-            if not inner.any():
-                break
-            rows = np.nonzero(inner)[0]
-            candidates = kids[rows]
-            safe = np.maximum(candidates, 0)
-            # |c|² - 2 p·c ranks the children as |p - c|² does, without an (n, K, D)
-            # difference array: 3.4x faster (measured on 40k SIFT descriptors)
-            distance = self._squared_norms[safe] - 2 * np.einsum(
-                "nkd,nd->nk", self.centroids[safe], points[rows])
-            distance[candidates < 0] = np.inf
-            node[rows] = candidates[np.arange(len(rows)), distance.argmin(1)]
-        return self.words[node]
+        if self._there is None:
+            squared_norms = np.einsum("md,md->m", self.centroids, self.centroids)
+            self._there = tuple(self.arrays.put(a) for a in (self.centroids, squared_norms,
+                                                             self.children))
+        leaves = np.empty(len(points), np.int64)
+        for start in range(0, len(points), chunk):
+            leaves[start:start + chunk] = self.arrays.get(
+                _descend(*self._there, self.arrays.put(points[start:start + chunk])))
+        return self.words[leaves]
 
     # ----------------------------------------------------------------------- (de)serialize
     def to_arrays(self) -> dict[str, np.ndarray]:

@@ -118,7 +118,7 @@ class LoopsStage(Stage):
         run, options = context.run, context.options
         started = time.perf_counter()
         keyframes = load_keyframes(run)
-        vocabulary = load_vocabulary(run.vocabulary)
+        vocabulary = load_vocabulary(run.vocabulary).use_device(options.device)
         with open_features(run, options) as store, \
                 open_raw_matches(run, options, context.input_digests["features"]) as cache:
             features = {k.image_name: store.features(k.image_name) for k in keyframes.keyframes}

@@ -114,11 +114,11 @@ class MapStoreStage(Stage):
         points = read_map_points(run.mapping_points)
         with open_features(run, options) as store:
             if run.vocabulary.is_file():
-                vocabulary = load_vocabulary(run.vocabulary)
+                vocabulary = load_vocabulary(run.vocabulary).use_device(options.device)
             else:  # the vocabulary stage was skipped: localization still needs one
                 vocabulary, _ = build_vocabulary(
                     [store.features(k.image_name).descriptors for k in keyframes.keyframes],
-                    options.vocabulary, options.seed)
+                    options.vocabulary, options.seed, options.device)
             prior_map = build_prior_map(keyframes, world_from_rig, points, store, vocabulary,
                                         features_section(options))
         manifest = write_map_store(run.map_dir, prior_map, run.mapping_poses.read_text())

@@ -54,8 +54,10 @@ def birch_builder(options: VocabularyStageOptions, seed: int = 0) -> BirchVocabu
 
 
 def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOptions,
-                     seed: int = 0) -> tuple[VocabularyTree, BirchVocabularyBuilder | None]:
-    """A vocabulary over per-image descriptor arrays (and the BIRCH builder for ``birch``)."""
+                     seed: int = 0, device: str = "cpu"
+                     ) -> tuple[VocabularyTree, BirchVocabularyBuilder | None]:
+    """A vocabulary over per-image descriptor arrays (and the BIRCH builder for ``birch``);
+    k-means on the GPU when ``device`` is one."""
     total = sum(len(d) for d in documents)
     if not total:
         raise CusfmError("no descriptors to build a vocabulary from; run the features stage")
@@ -68,7 +70,8 @@ def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOption
                 options.method, len(stacked), total, len(documents), options.branching,
                 options.depth)
     if options.method == "kmeans":
-        return VocabularyTree.build(stacked, vocab_options, documents=documents), None
+        return VocabularyTree.build(stacked, vocab_options, documents=documents,
+                                    device=device), None
     builder = birch_builder(options, seed)
     for document in documents:  # streamed: memory follows the CF entries
         builder.insert(document)
@@ -88,7 +91,8 @@ class VocabularyStage(Stage):
         started = time.perf_counter()
         with open_features(run, options) as store:
             documents = [store.features(name).descriptors for name in store.feature_names()]
-        tree, builder = build_vocabulary(documents, options.vocabulary, options.seed)
+        tree, builder = build_vocabulary(documents, options.vocabulary, options.seed,
+                                         options.device)
         if builder is not None:
             save_birch(run.birch_state, builder)
         save_vocabulary(run.vocabulary, tree)
