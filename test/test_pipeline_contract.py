@@ -358,9 +358,14 @@ def test_fingerprints_read_only_the_chosen_component():
     assert option_value(base, path) != option_value(other_sift, path)
 
 
-def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path):
-    """Loops, loop measurement and pair matching run on CPU threads: the stages on explicit
-    inputs with one thread give what the run with three wrote."""
+def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monkeypatch):
+    """Loops, loop measurement and pair matching run on CPU threads (the measurement on
+    processes): the stages on explicit inputs with one thread give what the run with three
+    wrote, and so do two worker processes."""
+    import functools
+
+    import cusfm_ros.pipeline.stages.pose_graph as pose_graph_stage
+    from cusfm_ros.pipeline.parallel import process_map
     from cusfm_ros.core.features.knn import KnnMatcher
     from cusfm_ros.io.feature_store import FeatureStore
     from cusfm_ros.io.loops_file import read_loops, write_loops
@@ -393,6 +398,16 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path):
         assert np.array_equal(graph.world_from_rig.stamps_ns, written.stamps_ns)
         assert np.allclose(graph.world_from_rig.world_from_body, written.world_from_body,
                            atol=1e-6)
+        # the loop measurements on two spawned worker processes (this bag has too few loops
+        # for the default minimum; two chunks of two at least)
+        assert len(loops) >= 4
+        monkeypatch.setattr(pose_graph_stage, "process_map",
+                            functools.partial(process_map, chunk=2, minimum=1))
+        on_processes = optimize_pose_graph(keyframes, loops, features, KnnMatcher(),
+                                           options.pose_graph, "rig", 0, threads=2)
+        assert on_processes.summary["loop_edges"] == graph.summary["loop_edges"] > 0
+        np.testing.assert_array_equal(on_processes.world_from_rig.world_from_body,
+                                      graph.world_from_rig.world_from_body)
         pairs = read_pairs(run.pairs)
         cameras = {k.image_name: keyframes.rig[k.camera_name].camera
                    for k in keyframes.keyframes}

@@ -1,20 +1,24 @@
-"""Per-pair work (matching, verification, loop measurement) on CPU threads, results in order.
+"""Per-pair work (matching, verification, loop measurement) on CPU threads or processes,
+results in order.
 
 The work items are independent and each takes its seed from the options, so a run gives the
-same results on 1 or 16 threads. Threads, not processes: the heavy calls (numpy's matrix
-products and reductions, OpenCV's RANSAC, ONNX Runtime, torch) release the GIL, and the
-features stay shared. While the pool runs, BLAS is held to one thread per worker
-(threadpoolctl) so that 16 workers do not each start 16 BLAS threads. Everything that writes
-(stores, caches) stays in the calling thread.
+same results on 1 or 16 workers. Threads where the heavy calls (numpy's matrix products and
+reductions, OpenCV's RANSAC, ONNX Runtime, torch) release the GIL, and the features stay
+shared (``ordered_map``); processes for work that is mostly Python, such as scipy's least
+squares calling back per iteration (``process_map``: its items carry their own arrays).
+While a thread pool runs, BLAS is held to one thread per worker (threadpoolctl) so that 16
+workers do not each start 16 BLAS threads. Everything that writes (stores, caches) stays in
+the calling thread.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from typing import TypeVar
 
 from cusfm_ros.errors import ConfigError
@@ -67,3 +71,33 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], threa
         while pending:
             done, future = pending.popleft()
             yield done, future.result()
+
+
+def _worker_process() -> None:
+    """A worker process leaves Ctrl-C and SIGTERM to its parent, and uses one BLAS thread."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
+
+
+def process_map(function: Callable[[Item], Result], items: list[Item], processes: int = 0,
+                chunk: int = 8, minimum: int = 64) -> list[Result]:
+    """``[function(item) for item in items]`` on ``processes`` worker processes (0: every
+    core), in order. ``function`` must be importable (a module-level function) and the items
+    picklable. Fewer than ``minimum`` items, or one process, run here: starting workers costs
+    about a second. Workers are spawned, not forked: the caller may hold threads (BLAS pools,
+    a CUDA context) that a fork would copy in an unknown state."""
+    processes = min(thread_count(processes), max(1, len(items) // chunk))
+    if processes == 1 or len(items) < minimum:
+        return [function(item) for item in items]
+    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_worker_process)
+    try:
+        results = list(pool.map(function, items, chunksize=chunk))
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    return results

@@ -21,7 +21,8 @@ from cusfm_ros.core.features.types import Features
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.graph.pose_graph import LoopConstraint, PoseGraphOptimizer, PoseGraphOptions
 from cusfm_ros.core.keyframes import KeyframeSet
-from cusfm_ros.core.relpose.loop_measurement import LoopView, measure_loop
+from cusfm_ros.core.relpose.loop_measurement import (LoopMeasurement, LoopView,
+                                                      measure_loop)
 from cusfm_ros.core.retrieval.loops import LoopRecord
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import GeometryError
@@ -32,7 +33,7 @@ from cusfm_ros.io.tum import write_tum
 from cusfm_ros.pipeline.components import LazyMatcher
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
-from cusfm_ros.pipeline.parallel import ordered_map
+from cusfm_ros.pipeline.parallel import ordered_map, process_map
 from cusfm_ros.pipeline.stages.loops import cached_matches, remember_matches
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
 
@@ -102,6 +103,14 @@ class _Graph:
             self.readout.append((self.node_of[first.image_name], base.inverse().matrix()))
 
 
+def _measure(arguments: tuple) -> LoopMeasurement | str:
+    """``measure_loop(*arguments)`` (in a worker process), or why it failed."""
+    try:
+        return measure_loop(*arguments)
+    except GeometryError as exc:
+        return str(exc)
+
+
 def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                         features: dict[str, Features], matcher,
                         options: PoseGraphOptions = PoseGraphOptions(), frame_type: str = "rig",
@@ -144,11 +153,10 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                                        features[match.image_name])
         return matches_qm, matches_pm
 
-    # matching runs on threads; the measurement stays in this thread: it is mostly Python
-    # (scipy's least squares calls back per iteration), so threads would only fight for
-    # the GIL (measured on the H200 machine, 300 frames, 1267 loops: the stage took 105 s
-    # with the measurement on 16 threads against 48 s in one)
-    constraints, kinds, skipped = [], {}, []
+    # matching runs on threads; the measurement on processes: it is mostly Python (scipy's
+    # least squares calls back per iteration), so threads only fight for the GIL (measured
+    # on the H200 machine, 300 frames, 1267 loops: 105 s on 16 threads, 48 s in one thread)
+    measured_items, measurements = [], []
     for item, (matches_qm, matches_pm) in ordered_map(missing_matches, inputs(), threads):
         edge, query, match, partner, cached_qm, cached_pm = item
         if cached_qm is None:
@@ -156,17 +164,21 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
         if partner is not None and cached_pm is None:
             remember_matches(cache, partner.image_name, match.image_name, matches_pm)
         prior = keyframes.world_from_rig(match).inverse() * keyframes.world_from_rig(query)
-        try:
-            measured = measure_loop(
-                rig, LoopView(query.camera_name, features[query.image_name].keypoints_px),
-                LoopView(match.camera_name, features[match.image_name].keypoints_px),
-                matches_qm.indices,
-                LoopView(partner.camera_name, features[partner.image_name].keypoints_px)
-                if partner is not None else None,
-                matches_pm.indices if matches_pm is not None else None,
-                edge.two_view, prior, seed)
-        except GeometryError as exc:
-            skipped.append(f"{edge.query_image} - {edge.match_image}: {exc}")
+        measured_items.append(item)
+        measurements.append((
+            rig, LoopView(query.camera_name, features[query.image_name].keypoints_px),
+            LoopView(match.camera_name, features[match.image_name].keypoints_px),
+            matches_qm.indices,
+            LoopView(partner.camera_name, features[partner.image_name].keypoints_px)
+            if partner is not None else None,
+            matches_pm.indices if matches_pm is not None else None,
+            edge.two_view, prior, seed))
+    constraints, kinds, skipped = [], {}, []
+    for item, measured in zip(measured_items,
+                              process_map(_measure, measurements, threads)):
+        edge, query, match = item[:3]
+        if isinstance(measured, str):
+            skipped.append(f"{edge.query_image} - {edge.match_image}: {measured}")
             continue
         relative = measured.rig_match_from_rig_query
         if frame_type == "camera":  # rig relation -> camera relation
