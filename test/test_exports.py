@@ -131,3 +131,13 @@ def test_kitti_and_tum_per_camera_read_by_evo(mapped):
         first = Rigid3.from_matrix(np.array(tum.poses_se3[0]))
         assert (Rigid3.from_matrix(world_from_cam[0]).inverse() * first
                 ).rotation_angle_deg() < 1e-4
+
+
+def test_observations_grouped_by_image_keep_row_order():
+    from cusfm_ros.core.mapping.map_points import MapPoints
+
+    points = MapPoints(np.zeros((2, 3)), [0, 1, 1, 0, 1], ["b", "a", "b", "c", "a"],
+                       [5, 6, 7, 8, 9], np.zeros((5, 2)), np.zeros(5))
+    groups = points.observations_by_image()
+    assert list(groups) == ["a", "b", "c"]
+    assert [groups[n].tolist() for n in "abc"] == [[1, 4], [0, 2], [3]]

@@ -218,8 +218,11 @@ def _write_text(model: ColmapReconstruction, directory: Path) -> None:
         for image in sorted(model.images.values(), key=lambda i: i.image_id):
             out.write(f"{image.image_id} {_pose_text(image.cam_from_world)} "
                       f"{image.camera_id} {image.name}\n")
-            out.write(" ".join(f"{_fmt(x)} {_fmt(y)} {int(i)}" for (x, y), i in
-                               zip(image.xys, image.point3d_ids)) + "\n")
+            # repr of Python floats (exact round trips), without a call per number
+            xys = np.asarray(image.xys, np.float64).reshape(-1, 2)
+            out.write(" ".join(f"{x!r} {y!r} {i}" for x, y, i in zip(
+                xys[:, 0].tolist(), xys[:, 1].tolist(),
+                np.asarray(image.point3d_ids, np.int64).tolist())) + "\n")
     with open(directory / "points3D.txt", "w", encoding="utf-8") as out:
         out.write("# 3D point list with one line of data per point:\n"
                   "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
@@ -227,8 +230,9 @@ def _write_text(model: ColmapReconstruction, directory: Path) -> None:
         for point in sorted(model.points3d.values(), key=lambda p: p.point3d_id):
             xyz = " ".join(_fmt(v) for v in point.xyz)
             rgb = " ".join(str(int(v)) for v in point.rgb)
-            track = " ".join(f"{int(i)} {int(j)}" for i, j in
-                             zip(point.image_ids, point.point2d_idxs))
+            track = " ".join(f"{i} {j}" for i, j in zip(
+                np.asarray(point.image_ids, np.int64).tolist(),
+                np.asarray(point.point2d_idxs, np.int64).tolist()))
             out.write(f"{point.point3d_id} {xyz} {rgb} {_fmt(point.error)} {track}\n")
     if model.rigs:
         _write_rigs_text(model, directory)

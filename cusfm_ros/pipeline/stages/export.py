@@ -60,11 +60,10 @@ def point_colours(image_path, points: MapPoints) -> np.ndarray:
     gives the path of an image."""
     total = np.zeros((len(points), 3))
     count = np.zeros(len(points))
-    for name in np.unique(points.obs_image):
+    for name, sel in points.observations_by_image().items():
         image = cv2.imread(str(image_path(name)), cv2.IMREAD_COLOR)
         if image is None:
             raise CusfmError(f"cannot read {image_path(name)} for the point colours")
-        sel = points.obs_image == name
         px = np.rint(points.obs_uv_px[sel]).astype(int)
         px[:, 0] = np.clip(px[:, 0], 0, image.shape[1] - 1)
         px[:, 1] = np.clip(px[:, 1], 0, image.shape[0] - 1)
@@ -96,12 +95,14 @@ def colmap_model(keyframes: KeyframeSet, world_from_rig: Trajectory, extrinsics:
     images = keyframes.images_in_time_order()
     image_ids = {k.image_name: i for i, k in enumerate(images, 1)}
     point_ids = np.arange(1, len(points) + 1)
+    rows_of = points.observations_by_image()
+    no_rows = np.zeros(0, np.int64)
     for keyframe in images:
         rig_from_cam = extrinsics.cameras[keyframe.camera_name].rig_from_cam
         world_from_cam = Rigid3.from_matrix(by_sample[keyframe.sample_id]) * rig_from_cam
         keypoints = features.features(keyframe.image_name).keypoints_px.astype(np.float64)
         ids = np.full(len(keypoints), -1, np.int64)
-        sel = points.obs_image == keyframe.image_name
+        sel = rows_of.get(keyframe.image_name, no_rows)
         ids[points.obs_keypoint[sel]] = point_ids[points.obs_point[sel]]
         image_id = image_ids[keyframe.image_name]
         model.images[image_id] = ColmapImage(
@@ -110,7 +111,9 @@ def colmap_model(keyframes: KeyframeSet, world_from_rig: Trajectory, extrinsics:
     _add_rig(model, keyframes, by_sample, extrinsics, camera_ids, image_ids)
     order = np.argsort(points.obs_point, kind="stable")
     starts = np.searchsorted(points.obs_point[order], np.arange(len(points) + 1))
-    image_of_obs = np.array([image_ids[n] for n in points.obs_image], np.int64)
+    image_of_obs = np.zeros(points.num_observations, np.int64)
+    for name, rows in rows_of.items():
+        image_of_obs[rows] = image_ids[name]
     sums = np.bincount(points.obs_point, weights=np.nan_to_num(points.obs_error_px),
                        minlength=len(points))
     counts = np.bincount(points.obs_point, weights=np.isfinite(points.obs_error_px),
