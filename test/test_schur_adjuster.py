@@ -49,6 +49,18 @@ def test_synthetic_problem_reaches_the_noise_floor_and_gtsams_cost():
     assert adjusted.cost() == pytest.approx(reference.final_cost, rel=1e-6)
 
 
+def test_pair_chunks_bound_memory_not_the_result():
+    problem, _ = synthetic(cameras=6, points=120)
+    whole, _ = ours(problem)
+    chunked, _ = ours(problem, pair_chunk=37)
+    assert chunked.iterations == whole.iterations
+    np.testing.assert_allclose(chunked.points3d_in_world, whole.points3d_in_world, atol=1e-9)
+    np.testing.assert_allclose(chunked.cam_from_world_translation,
+                               whole.cam_from_world_translation, atol=1e-9)
+    with pytest.raises(CusfmError, match="pair_chunk"):
+        SchurAdjusterOptions(pair_chunk=0)
+
+
 def test_fixed_cameras_stay_put_and_fix_the_gauge():
     """Two cameras held at their true poses: the others and the points come back to the
     truth in metres, not only up to a similarity."""

@@ -93,10 +93,14 @@ class SchurAdjusterOptions:
     """1 / the first Levenberg–Marquardt damping, as in Ceres."""
     device: str = "cpu"
     dtype: str = "float64"
+    pair_chunk: int = 1 << 20
+    """Observation pairs whose blocks of W V⁻¹ Wᵀ are formed at once (~600 bytes each in
+    float64): bounds the memory. Unchunked, the 1000-frame street (1.67M observations)
+    peaked at 24 GB on the GPU."""
 
     def __post_init__(self) -> None:
-        if self.max_iterations < 1:
-            raise ConfigError("max_iterations must be >= 1")
+        if self.max_iterations < 1 or self.pair_chunk < 1:
+            raise ConfigError("max_iterations and pair_chunk must be >= 1")
         if not (self.function_tolerance >= 0 and self.gradient_tolerance >= 0
                 and self.initial_trust_radius > 0):
             raise ConfigError("tolerances must be >= 0 and the trust radius > 0")
@@ -257,8 +261,11 @@ class SchurAdjuster:
                 v_inv = torch.linalg.inv(v + torch.diag_embed(d_point))
                 y = w @ v_inv[pt]
                 blocks = torch.zeros(num_cameras * num_cameras, 6, 6, dtype=dtype,
-                                     device=device).index_add_(
-                    0, pairs.block, -(y[pairs.first] @ w[pairs.second].transpose(1, 2)))
+                                     device=device)
+                for start in range(0, len(pairs.first), o.pair_chunk):
+                    part = slice(start, start + o.pair_chunk)
+                    blocks.index_add_(0, pairs.block[part], -(
+                        y[pairs.first[part]] @ w[pairs.second[part]].transpose(1, 2)))
                 for index, value in zip(off_block, off_value):
                     blocks.index_add_(0, index, value)
                 blocks = blocks.view(num_cameras, num_cameras, 6, 6)
