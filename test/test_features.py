@@ -319,10 +319,11 @@ def test_knn_dense_and_blocked_paths_agree_and_a_tie_matches_once(rng, monkeypat
 def test_knn_torch_distances_equal_numpys(rng):
     """The GPU path's code on CPU tensors (CI has no GPU)."""
     import cusfm_ros.core.features.knn as knn
+    from cusfm_ros.core.accelerator import Arrays
 
     f0, f1 = _overlapping_descriptors(rng)
-    ours = knn._dense_nearest(f0.descriptors, f1.descriptors)
-    theirs = knn._dense_nearest_torch(torch, f0.descriptors, f1.descriptors, "cpu")
+    ours = knn._dense_nearest(Arrays(), f0.descriptors, f1.descriptors)
+    theirs = knn._dense_nearest(Arrays(torch, "cpu"), f0.descriptors, f1.descriptors)
     np.testing.assert_array_equal(ours[0], theirs[0])
     np.testing.assert_array_equal(ours[3], theirs[3])
     np.testing.assert_allclose(ours[1], theirs[1], atol=1e-4)

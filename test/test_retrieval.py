@@ -53,9 +53,7 @@ def test_quantize_in_chunks_and_with_torch_gives_the_same_words(rng, kind):
             node = kids[np.argmin(((tree.centroids[kids] - point) ** 2).sum(1))]
         expected.append(tree.words[node])
     np.testing.assert_array_equal(words, expected)
-    tree.arrays = _arrays(kind)
-    tree._there = None
-    np.testing.assert_array_equal(tree.quantize(points), words)
+    np.testing.assert_array_equal(tree.use_arrays(_arrays(kind)).quantize(points), words)
 
 
 def test_build_is_seeded_and_deterministic(rng):
@@ -68,7 +66,7 @@ def test_build_is_seeded_and_deterministic(rng):
 
 
 def _arrays(kind):
-    from cusfm_ros.core.retrieval.kmeans import Arrays
+    from cusfm_ros.core.accelerator import Arrays
 
     if kind == "numpy":
         return Arrays()

@@ -1,10 +1,16 @@
 """Which array library a device option means: torch on a CUDA GPU, or numpy.
 
 torch is optional at run time (the CPU path runs on numpy, OpenCV, gtsam and ONNX Runtime;
-the ROS environment has no torch), so code with a GPU path asks here first.
+the ROS environment has no torch), so code with a GPU path asks here first. Code written
+against the array API standard (``array-api-compat``) runs on either; ``Arrays`` moves its
+inputs there and its results back.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
 
 from cusfm_ros.errors import ConfigError
 
@@ -29,3 +35,25 @@ def cuda_torch(device: str):
     if device == "cuda":
         raise ConfigError("--device cuda: torch sees no CUDA GPU; use --device cpu")
     return None
+
+
+@dataclass(frozen=True)
+class Arrays:
+    """Where array-API code runs: numpy (``torch`` None), or torch on ``device``."""
+
+    torch: object | None = None
+    device: str = "cpu"
+
+    @classmethod
+    def for_device(cls, device: str) -> Arrays:
+        """numpy for ``cpu``; torch on the GPU for ``cuda`` (and ``auto`` when there is one)."""
+        torch = cuda_torch(device)
+        return cls() if torch is None else cls(torch, "cuda")
+
+    def put(self, array: np.ndarray):
+        if self.torch is None:
+            return array
+        return self.torch.from_numpy(np.ascontiguousarray(array)).to(self.device)
+
+    def get(self, array) -> np.ndarray:
+        return array if self.torch is None else array.cpu().numpy()

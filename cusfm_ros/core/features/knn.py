@@ -6,8 +6,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from array_api_compat import array_namespace
+from array_api_compat import device as device_of
 
-from cusfm_ros.core.accelerator import cuda_torch
+from cusfm_ros.core.accelerator import Arrays
 from cusfm_ros.core.features.types import FeatureError, Features, Matches
 from cusfm_ros.errors import ConfigError
 
@@ -47,40 +49,28 @@ def _nearest_two(a: np.ndarray, b: np.ndarray, batch: int) -> tuple[np.ndarray, 
     return indices, dists
 
 
-def _dense_nearest(a: np.ndarray, b: np.ndarray
+def _dense_nearest(arrays: Arrays, a: np.ndarray, b: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One distance matrix for both directions (when it fits): each row's nearest column, its
-    nearest and second-nearest squared distances, and whether it is as near as any row to that
-    column (a mutual candidate; ``_first_of_ties`` settles ties)."""
-    d = a @ b.T  # in place from here: no (N, M) temporaries
+    """One distance matrix for both directions (when it fits), with numpy or torch on the GPU
+    (``arrays``; float32 products, no TF32): each row's nearest column, its nearest and
+    second-nearest squared distances, and whether it is as near as any row to that column (a
+    mutual candidate; ``_first_of_ties`` settles ties)."""
+    a, b = arrays.put(a), arrays.put(b)
+    xp = array_namespace(a)
+    d = a @ xp.matrix_transpose(b)  # in place from here: no (N, M) float temporaries
     d *= -2.0
-    d += (b * b).sum(1)[None]
-    d += (a * a).sum(1)[:, None]
-    np.maximum(d, 0, out=d)
-    rows = np.arange(len(a))
-    first = d.argmin(1)
+    d += xp.sum(b * b, axis=1)[None, :]
+    d += xp.sum(a * a, axis=1)[:, None]
+    d[d < 0] = 0
+    rows = xp.arange(d.shape[0], device=device_of(d))
+    first = xp.argmin(d, axis=1)
     best = d[rows, first]
     # a column's minimum, not its argmin: numpy's argmin over axis 0 is strided and took
     # 14 ms of 27 per 2000 x 2000 pair, its min 0.6 ms
-    mutual = best <= d.min(0)[first]
-    d[rows, first] = np.inf
-    second = d.min(1) if d.shape[1] > 1 else np.full(len(a), np.inf, np.float32)
-    return first, best, second, mutual
-
-
-def _dense_nearest_torch(torch, a: np.ndarray, b: np.ndarray, device: str = "cuda"
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``_dense_nearest`` with torch on ``device`` (float32 products, no TF32)."""
-    ta, tb = torch.from_numpy(a).to(device), torch.from_numpy(b).to(device)
-    d = ta @ tb.T
-    d.mul_(-2.0).add_((tb * tb).sum(1)[None]).add_((ta * ta).sum(1)[:, None]).clamp_(min=0)
-    rows = torch.arange(len(a), device=d.device)
-    first = d.argmin(1)
-    best = d[rows, first]
-    mutual = best <= d.min(0).values[first]
-    d[rows, first] = float("inf")
-    second = d.min(1).values if d.shape[1] > 1 else torch.full_like(best, float("inf"))
-    return tuple(t.cpu().numpy() for t in (first, best, second, mutual))
+    mutual = best <= xp.min(d, axis=0)[first]
+    d[rows, first] = xp.inf
+    second = xp.min(d, axis=1) if d.shape[1] > 1 else xp.full_like(best, xp.inf)
+    return tuple(arrays.get(v) for v in (first, best, second, mutual))
 
 
 def _first_of_ties(nearest: np.ndarray, mutual: np.ndarray) -> np.ndarray:
@@ -108,7 +98,7 @@ class KnnMatcher:
         """``device``: ``cuda`` (or ``auto`` with a GPU) computes the distances with torch on
         the GPU; the matches equal the CPU's up to float rounding of near ties."""
         self.options = options
-        self.torch = cuda_torch(device)
+        self.arrays = Arrays.for_device(device)
 
     def config(self) -> dict:
         return {"name": self.name, **self.options.__dict__}
@@ -124,11 +114,9 @@ class KnnMatcher:
             d1 = d1 / np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-12)
         d0, d1 = d0.astype(np.float32), d1.astype(np.float32)
         size = len(d0) * len(d1)
-        dense = size <= (DENSE_LIMIT if self.torch is None else GPU_DENSE_LIMIT)
+        dense = size <= (DENSE_LIMIT if self.arrays.torch is None else GPU_DENSE_LIMIT)
         if dense:
-            best, nearest, second, mutual = (
-                _dense_nearest(d0, d1) if self.torch is None
-                else _dense_nearest_torch(self.torch, d0, d1))
+            best, nearest, second, mutual = _dense_nearest(self.arrays, d0, d1)
             dist01 = np.stack([nearest, second], 1)
         else:
             nn01, dist01 = _nearest_two(d0, d1, self.options.batch_size)

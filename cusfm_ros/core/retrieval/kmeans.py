@@ -10,7 +10,7 @@ cores, most of it per-call overhead and k-means++ seeding.
 
 The batched steps are written against the array API standard (``array-api-compat``), so one
 code runs on numpy (the CPU path: torch is not a runtime dependency, the ROS environment has
-none) and on torch tensors on a CUDA GPU (``Arrays.for_device``); the tree's bookkeeping
+none) and on torch tensors on a CUDA GPU (``accelerator.Arrays``); the tree's bookkeeping
 stays numpy.
 
 Random draws come from a numpy generator seeded by (seed, level, batch), never from a global
@@ -25,7 +25,7 @@ import numpy as np
 from array_api_compat import array_namespace
 from array_api_compat import device as device_of
 
-from cusfm_ros.core.accelerator import cuda_torch
+from cusfm_ros.core.accelerator import Arrays
 
 
 @dataclass
@@ -36,28 +36,6 @@ class Tree:
     centroids: np.ndarray
     children: np.ndarray
     leaf: np.ndarray
-
-
-@dataclass(frozen=True)
-class Arrays:
-    """Where the batched products run: numpy (``torch`` None), or torch on ``device``."""
-
-    torch: object | None = None
-    device: str = "cpu"
-
-    @classmethod
-    def for_device(cls, device: str) -> Arrays:
-        """numpy for ``cpu``; torch on the GPU for ``cuda`` (and ``auto`` when there is one)."""
-        torch = cuda_torch(device)
-        return cls() if torch is None else cls(torch, "cuda")
-
-    def put(self, array: np.ndarray):
-        if self.torch is None:
-            return array
-        return self.torch.from_numpy(np.ascontiguousarray(array)).to(self.device)
-
-    def get(self, array) -> np.ndarray:
-        return array if self.torch is None else array.cpu().numpy()
 
 
 def _transposed(xp, a):
@@ -80,7 +58,8 @@ def _plus_plus(x, x_norms, weights, k: int, uniforms):
     rows = xp.arange(x.shape[0], device=where)
     centres = xp.zeros((x.shape[0], k, x.shape[2]), dtype=x.dtype, device=where)
     valid = xp.zeros((x.shape[0], k), dtype=xp.bool, device=where)
-    mass = xp.astype(weights, xp.float64)
+    weights = xp.astype(weights, xp.float64)
+    mass = weights
     closest = None
     for j in range(k):
         cumulative = xp.cumulative_sum(mass, axis=1)
@@ -92,7 +71,7 @@ def _plus_plus(x, x_norms, weights, k: int, uniforms):
         centres[:, j] = x[rows, pick]
         distance = _squared_distances(x, x_norms, centres[:, j:j + 1])[:, :, 0]
         closest = distance if closest is None else xp.minimum(closest, distance)
-        mass = xp.astype(weights, xp.float64) * xp.astype(closest, xp.float64)
+        mass = weights * xp.astype(closest, xp.float64)
     return centres, valid
 
 
@@ -205,10 +184,10 @@ def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int,
                 index = np.where(real, order[np.minimum(starts[group][:, None] + within,
                                                         len(order) - 1)], 0)
                 there = arrays.put(index)
-                centres, labels, valid = batched_kmeans(
+                centres, labels, valid_there = batched_kmeans(
                     x_there[there], w_there[there] * arrays.put(real.astype(np.float32)), k,
                     iterations, rng)
-                labels, valid = arrays.get(labels), arrays.get(valid)
+                labels, valid = arrays.get(labels), arrays.get(valid_there)
                 # every point of the node and its cluster
                 point_rows, point_cols = np.nonzero(real & ~sampled[:, None])
                 point_ids = index[point_rows, point_cols]
@@ -217,7 +196,7 @@ def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int,
                     ids = order[starts[group[row]]:starts[group[row]] + sizes[group[row]]]
                     one, ids_there = slice(row, row + 1), arrays.put(ids)
                     x_node = x_there[ids_there][None]
-                    assigned = _assign(x_node, centres[one], arrays.put(valid[one]))
+                    assigned = _assign(x_node, centres[one], valid_there[one])
                     # one last update step over all of the node's points
                     centres[one] = _update(x_node, w_there[ids_there][None], assigned,
                                            centres[one])

@@ -20,7 +20,8 @@ import numpy as np
 from array_api_compat import array_namespace
 from array_api_compat import device as device_of
 
-from cusfm_ros.core.retrieval.kmeans import Arrays, hierarchical_kmeans
+from cusfm_ros.core.accelerator import Arrays
+from cusfm_ros.core.retrieval.kmeans import hierarchical_kmeans
 from cusfm_ros.errors import ConfigError, CusfmError
 
 logger = logging.getLogger(__name__)
@@ -131,7 +132,11 @@ class VocabularyTree:
     # --------------------------------------------------------------------------- quantize
     def use_device(self, device: str) -> VocabularyTree:
         """Quantize on ``device`` from now on (``cuda``: torch on the GPU); returns self."""
-        self.arrays, self._there = Arrays.for_device(device), None
+        return self.use_arrays(Arrays.for_device(device))
+
+    def use_arrays(self, arrays: Arrays) -> VocabularyTree:
+        """Quantize with ``arrays`` from now on; returns self."""
+        self.arrays, self._there = arrays, None
         return self
 
     def quantize(self, descriptors: np.ndarray, chunk: int = 4096) -> np.ndarray:
