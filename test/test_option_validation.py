@@ -30,3 +30,22 @@ def test_bad_option_values_stop_before_any_work(tmp_path, capsys, args, message)
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert "no such bag" not in err  # the option is refused before the bag is opened
     assert not out.exists()
+
+
+def test_device_cuda_without_a_gpu_stops_before_any_work(tmp_path, capsys):
+    from cusfm_ros.core.accelerator import check_device
+    from cusfm_ros.errors import ConfigError
+
+    try:
+        check_device("cuda")
+    except ConfigError:
+        pass
+    else:
+        pytest.skip("this machine has a GPU library that sees a GPU")
+    out = tmp_path / "run"
+    assert main(["map", str(tmp_path / "no_bag"), "--out", str(out), "--device", "cuda"]) == 1
+    err = capsys.readouterr().err
+    assert "--device cuda" in err and "use --device cpu" in err, err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "no such bag" not in err
+    assert not out.exists()

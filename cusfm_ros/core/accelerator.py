@@ -18,7 +18,9 @@ from cusfm_ros.errors import ConfigError
 def cuda_torch(device: str):
     """The torch module when ``device`` means a CUDA GPU that torch can use, else None:
     ``cpu`` -> None; ``auto`` -> torch when it is installed and sees a GPU; ``cuda`` -> torch,
-    or a ``ConfigError`` naming what is missing."""
+    a ``ConfigError`` when torch sees no GPU, or None when torch is not installed (the GPU is
+    then onnxruntime's, which runs the networks; ``check_device`` says whether there is
+    one)."""
     if device not in ("auto", "cpu", "cuda"):
         raise ConfigError(f"unknown device {device!r} (use auto, cpu or cuda)")
     if device == "cpu":
@@ -26,15 +28,25 @@ def cuda_torch(device: str):
     try:
         import torch
     except ImportError:
-        if device == "cuda":
-            raise ConfigError("--device cuda needs torch with CUDA, which is not installed; "
-                              "install torch, or use --device cpu") from None
         return None
     if torch.cuda.is_available():
         return torch
     if device == "cuda":
         raise ConfigError("--device cuda: torch sees no CUDA GPU; use --device cpu")
     return None
+
+
+def check_device(device: str) -> None:
+    """A ``ConfigError`` when ``device`` is ``cuda`` and nothing can use a GPU: neither torch
+    with CUDA nor an onnxruntime with a CUDA or TensorRT provider. Called before a run's
+    first stage, so a wrong ``--device`` costs no work."""
+    if device != "cuda" or cuda_torch(device) is not None:
+        return
+    from cusfm_ros.core.features.onnx_session import has_gpu_provider
+
+    if not has_gpu_provider():
+        raise ConfigError("--device cuda needs torch with CUDA or onnxruntime-gpu, and neither "
+                          "is installed; install one, or use --device cpu")
 
 
 @dataclass(frozen=True)

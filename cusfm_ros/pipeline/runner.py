@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from cusfm_ros import __version__
+from cusfm_ros.core.accelerator import check_device
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.digest import DigestCache
@@ -185,6 +186,7 @@ class StageRunner:
         ``failed`` with the error and the stage it stopped in (then re-raised)."""
         run = RunDir(run_dir)
         steps = self.check_steps(steps)
+        check_device(self.options.device)
         _load_native_runtimes()
         _check_run_dir(run)
         run.root.mkdir(parents=True, exist_ok=True)
