@@ -210,6 +210,32 @@ def test_vectorized_triangulation_equals_one_track_at_a_time(rng):
         assert np.mean(together.inliers[data["outlier"]]) < 0.02
 
 
+def test_a_track_whose_first_pair_holds_an_outlier_still_finds_its_point(rng):
+    """Tracks are first tried with their first pair alone (most have no outlier); where the
+    first observation is an outlier, the other pairs are tried and the outlier is left out."""
+    camera = CAMERAS["pinhole"]
+    truth, data = scene(rng, camera, noise_px=0.3, num_points=200)
+    node, sensor = data["image_node"][data["image"]], data["image_sensor"][data["image"]]
+    cam_from_world = invert_matrices(truth["world_from_rig"][node] @
+                                     truth["rig_from_cam"][sensor])
+    offsets = data["offsets"]
+    long_enough = np.nonzero(np.diff(offsets) >= 4)[0]
+    xy = data["xy"].copy()
+    xy[offsets[long_enough]] += 0.05  # ~25 px off: the first observation of those tracks
+    options = TriangulationOptions(max_error=3.0 / camera.focal_px)
+    result = triangulate_tracks(cam_from_world, xy, offsets, options)
+    clean = triangulate_tracks(cam_from_world, data["xy"], offsets, options)
+    spoiled = long_enough[clean.valid[long_enough]]
+    # without its first observation a track may see too small an angle; most do not
+    assert len(spoiled) > 50 and result.valid[spoiled].mean() > 0.9
+    assert not result.inliers[offsets[long_enough]].any()
+    found = spoiled[result.valid[spoiled]]
+    error = np.linalg.norm(result.points[found] - truth["points"][found], axis=1)
+    assert np.median(error) < 0.05
+    others = np.setdiff1d(np.nonzero(clean.valid)[0], long_enough)
+    np.testing.assert_array_equal(result.points[others], clean.points[others])
+
+
 def test_fixed_nodes_stay_where_they_are_given(rng):
     """Map update (paper Eq. 11): poses of an existing map are held; the rest moves to fit."""
     from dataclasses import replace

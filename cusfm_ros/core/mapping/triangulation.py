@@ -140,28 +140,28 @@ def _pair_table(length: int, max_pairs: int) -> np.ndarray:
     return np.array(list(combinations(range(length), 2))[:max_pairs], dtype=np.int64)
 
 
-def _best_proposals(cam_from_world, xy, offsets, options, max_error) -> np.ndarray:
-    """(T, 3) best RANSAC proposal per track (NaN where none is finite)."""
+def _best_of(cam_from_world, xy, offsets, tracks, tables, options, max_error, best
+             ) -> np.ndarray:
+    """Evaluate the pairs ``tables[length]`` of each of ``tracks`` on all of its observations
+    and write each track's winner (most inliers, the first pair on a tie; NaN if fewer than
+    two) into ``best``; returns (len(tracks),) the winners' inlier counts."""
     lengths = np.diff(offsets)
-    num_tracks = len(lengths)
-    best = np.full((num_tracks, 3), np.nan)
-    tables = {int(n): _pair_table(int(n), options.max_pairs) for n in np.unique(lengths)}
-    pairs_per_track = np.array([len(tables[int(n)]) for n in lengths], dtype=np.int64)
-    work = pairs_per_track * lengths
+    pairs_per_track = np.array([len(tables[int(n)]) for n in lengths[tracks]], dtype=np.int64)
+    work = pairs_per_track * lengths[tracks]
+    winners = np.full(len(tracks), -1, np.int64)
     # chunks of consecutive tracks with bounded proposal x observation work
     bounds = np.searchsorted(np.cumsum(work), np.arange(0, work.sum(), options.chunk_evaluations),
                              side="right")
-    bounds = np.unique(np.r_[0, bounds, num_tracks])
+    bounds = np.unique(np.r_[0, bounds, len(tracks)])
     for lo, hi in zip(bounds[:-1], bounds[1:]):
-        tracks = np.arange(lo, hi)
-        if len(tracks) == 0:
+        if hi <= lo:
             continue
+        chunk = tracks[lo:hi]
         # proposals: (track, obs a, obs b) as absolute observation indices
-        per = pairs_per_track[tracks]
-        track_of = np.repeat(tracks, per)
-        local = np.concatenate([tables[int(lengths[t])] for t in tracks])
-        first = offsets[track_of]
-        pair_obs = local + first[:, None]
+        track_of = np.repeat(chunk, pairs_per_track[lo:hi])
+        row_of = np.repeat(np.arange(lo, hi), pairs_per_track[lo:hi])
+        local = np.concatenate([tables[int(lengths[t])] for t in chunk])
+        pair_obs = local + offsets[track_of][:, None]
         points = _two_view(cam_from_world[pair_obs], xy[pair_obs], options.method)
         # evaluate every proposal on every observation of its track
         obs_len = lengths[track_of]
@@ -176,6 +176,26 @@ def _best_proposals(cam_from_world, xy, offsets, options, max_error) -> np.ndarr
         head = np.r_[True, track_of[order][1:] != track_of[order][:-1]]
         chosen = order[head]
         best[track_of[chosen]] = np.where((count[chosen] >= 2)[:, None], points[chosen], np.nan)
+        winners[row_of[chosen]] = count[chosen]
+    return winners
+
+
+def _best_proposals(cam_from_world, xy, offsets, options, max_error) -> np.ndarray:
+    """(T, 3) best RANSAC proposal per track (NaN where none is finite).
+
+    First every track's first pair alone: a track whose observations all agree with it is
+    done, since no later pair can have more inliers and a tie goes to the first (the same
+    winner as trying them all, at a fraction of the work: most tracks of verified matches
+    hold no outlier). The other tracks try up to ``max_pairs`` pairs."""
+    lengths = np.diff(offsets)
+    best = np.full((len(lengths), 3), np.nan)
+    tables = {int(n): _pair_table(int(n), options.max_pairs) for n in np.unique(lengths)}
+    every = np.arange(len(lengths))
+    count = _best_of(cam_from_world, xy, offsets, every,
+                     {n: table[:1] for n, table in tables.items()}, options, max_error, best)
+    rest = every[count < lengths]
+    best[rest] = np.nan
+    _best_of(cam_from_world, xy, offsets, rest, tables, options, max_error, best)
     return best
 
 
