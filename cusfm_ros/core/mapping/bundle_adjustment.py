@@ -158,6 +158,10 @@ class BundleProblem:
         world_from_node = self.world_from_node if world_from_node is None else world_from_node
         node_from_sensor = (self.node_from_sensor if node_from_sensor is None
                             else node_from_sensor)
+        if self.obs_next_node is None:  # one pose per image, gathered per observation
+            world_from_cam = (world_from_node[self.image_node]
+                              @ node_from_sensor[self.image_sensor])
+            return invert_matrices(world_from_cam)[self.obs_image]
         node = self.image_node[self.obs_image]
         world_from_body = world_from_node[node]
         if self.obs_next_node is not None:
