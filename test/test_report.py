@@ -113,3 +113,36 @@ def test_refinement_that_raises_the_ate_is_flagged(tmp_path):
         data = read_run_data(run, tmp_path / "gt.tum")
         raised = [s for s in data.suspicious if "refinement raised the ATE" in s]
         assert bool(raised) == flagged, data.suspicious
+
+
+def test_loop_edges_are_drawn_as_one_collection_where_the_ate_aligned_them(tmp_path):
+    """Every loop edge in the top view, moved by the same alignment as the refined path
+    (one artist for all of them: thousands of loops draw in a fraction of a second)."""
+    from matplotlib.collections import LineCollection
+
+    from cusfm_ros.core.evaluation import AteOptions, absolute_trajectory_error
+    from cusfm_ros.core.geometry import Rigid3
+    from cusfm_ros.core.trajectory import Trajectory
+    from cusfm_ros.report.page import _trajectories
+    from cusfm_ros.report.run_data import RunData
+
+    stamps = np.arange(40, dtype=np.int64) * 100_000_000
+    truth = np.repeat(np.eye(4)[None], 40, axis=0)
+    truth[:, 0, 3] = 10 * np.cos(stamps * 1e-9)
+    truth[:, 1, 3] = 10 * np.sin(stamps * 1e-9)
+    offset = Rigid3.from_rotvec(np.array([0, 0, 0.3]), np.array([5.0, -2.0, 0.0])).matrix()
+    refined = offset @ truth  # the run's own frame: the page aligns it to the truth
+    data = RunData(tmp_path, truth=Trajectory(stamps, truth),
+                   refined=Trajectory(stamps, refined))
+    data.ate["refined"] = absolute_trajectory_error(data.truth, data.refined,
+                                                    AteOptions(align="se3"))
+    data.loops_xy = [(refined[i, :3, 3], refined[i + 20, :3, 3]) for i in range(0, 20, 2)]
+    figure = _trajectories(data, (0, 1), "top")
+    collections = [c for c in figure.axes[0].collections if isinstance(c, LineCollection)]
+    assert len(collections) == 1
+    segments = np.asarray(collections[0].get_segments())
+    assert segments.shape == (10, 2, 2)
+    expected = np.stack([[truth[i, :2, 3], truth[i + 20, :2, 3]] for i in range(0, 20, 2)])
+    np.testing.assert_allclose(segments, expected, atol=1e-9)
+    labels = [t.get_text() for t in figure.axes[0].get_legend().get_texts()]
+    assert "loop edges" in labels
