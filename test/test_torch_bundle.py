@@ -48,7 +48,8 @@ def _problem(rng, outliers=0.0, odometry_jump_m=0.0, absolute_prior=False):
 def test_torch_and_gtsam_reach_the_same_optimum(rng, robust, outliers, jump, absolute):
     problem, truth = _problem(rng, outliers, jump, absolute)
     options = BundleOptions(absolute_prior_sigma_m=1.0 if absolute else 0.0,
-                            max_iterations=100, relative_tolerance=1e-10)
+                            max_iterations=100, relative_tolerance=1e-10,
+                            robust_relative_tolerance=1e-10)
     reference = BundleAdjuster(options).solve(problem, robust=robust)
     ours = TorchBundleAdjuster(options).solve(problem, robust=robust)
     # the same cost function (gtsam rounds each sigma to a 0.5 % band of noise models)
@@ -105,3 +106,25 @@ def test_without_torch_auto_falls_back_to_gtsam_and_torch_is_a_clear_error(monke
         _Adjusters(BundleOptions(solver="torch"), "cpu")
     with pytest.raises(ConfigError, match="needs torch, which is not installed"):
         _Adjusters(BundleOptions(solver="auto"), "cuda")
+
+
+@pytest.mark.parametrize("solver", ["gtsam", "torch"])
+def test_the_robust_stage_stops_at_its_own_tolerance(rng, solver):
+    """The robust stage's adjustments stop at ``robust_relative_tolerance``, the final one
+    at ``relative_tolerance``: a loose robust tolerance takes fewer iterations, the strict
+    one reaches the same optimum as before."""
+    problem, _ = _problem(rng, 0.03, 0.0, False)
+    adjuster = BundleAdjuster if solver == "gtsam" else TorchBundleAdjuster
+    strict = BundleOptions(max_iterations=100, relative_tolerance=1e-10,
+                           robust_relative_tolerance=1e-10)
+    loose = BundleOptions(max_iterations=100, relative_tolerance=1e-10,
+                          robust_relative_tolerance=1e-2)
+    tight_robust = adjuster(strict).solve(problem, robust=True)
+    loose_robust = adjuster(loose).solve(problem, robust=True)
+    assert loose_robust.iterations < tight_robust.iterations
+    assert loose_robust.error_after <= 1.02 * tight_robust.error_after
+    # the final (non-robust) adjustment is untouched by the robust tolerance
+    final_strict = adjuster(strict).solve(problem, robust=False)
+    final_loose = adjuster(loose).solve(problem, robust=False)
+    assert final_loose.iterations == final_strict.iterations
+    assert final_loose.error_after == pytest.approx(final_strict.error_after, rel=1e-12)

@@ -57,6 +57,14 @@ class BundleOptions:
     the final adjustment (how well the data pins each camera down; calibration reports)."""
     max_iterations: int = 30
     relative_tolerance: float = 1e-6
+    """Stop when an iteration lowers the cost by less than this fraction: the final (strict)
+    adjustment."""
+    robust_relative_tolerance: float = 1e-4
+    """The same for the robust stage's adjustments, which sort observations into inliers and
+    outliers before the final one: past 1e-4 they crawled (street 300: 12 and 11 iterations
+    instead of 4 and 3 for the last 0.05 % of the cost) without changing the inliers that
+    matter; the final maps agree (ATE 0.00955 against 0.00959 m there, KITTI 06 identical to
+    5 digits) and the mapping stage took 43.5 instead of 75.8 s on 2 cores."""
     solver: str = "auto"
     """``gtsam`` (CPU), ``torch`` (Levenberg–Marquardt + Schur complement on the run's
     device) or ``auto``: torch on a CUDA device, gtsam otherwise. Problems torch does not
@@ -75,9 +83,12 @@ class BundleOptions:
                   self.extrinsic_prior_sigma_deg, self.robust_threshold_px)
         if not min(sigmas) > 0:
             raise ConfigError("bundle adjustment sigmas and thresholds must be positive")
-        if self.max_iterations < 1 or not self.relative_tolerance >= 0:
-            raise ConfigError(f"bundle_adjustment: max_iterations >= 1 and relative_tolerance "
-                              f">= 0, got {self.max_iterations} and {self.relative_tolerance}")
+        if (self.max_iterations < 1 or not self.relative_tolerance >= 0
+                or not self.robust_relative_tolerance >= 0):
+            raise ConfigError(f"bundle_adjustment: max_iterations >= 1, relative_tolerance "
+                              f">= 0 and robust_relative_tolerance >= 0, got "
+                              f"{self.max_iterations}, {self.relative_tolerance} and "
+                              f"{self.robust_relative_tolerance}")
         if not self.odometry_robust_sigmas >= 0:
             raise ConfigError("bundle_adjustment.odometry_robust_sigmas must be >= 0")
 
@@ -310,7 +321,8 @@ class BundleAdjuster:
                 graph.add(gtsam.PriorFactorPose3(x(node), gtsam.Pose3(pose), loose))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(o.max_iterations)
-        params.setRelativeErrorTol(o.relative_tolerance)
+        params.setRelativeErrorTol(o.robust_relative_tolerance if robust
+                                   else o.relative_tolerance)
         params.setAbsoluteErrorTol(0.0)
         # gtsam's default damping (lambda I, fixed x10 steps) kept: Marquardt's diagonal
         # scaling with Nielsen's adaptive lambda took 13 instead of 35 eliminations on the

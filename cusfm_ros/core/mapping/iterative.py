@@ -197,7 +197,9 @@ class IterativeMapper:
         if len(tracks) == 0:
             return 0
         lengths = np.diff(data.offsets)[tracks]
-        obs = np.concatenate([np.arange(data.offsets[t], data.offsets[t + 1]) for t in tracks])
+        # every observation of the tracks, in track order (one index, not an arange per track)
+        obs = (np.repeat(data.offsets[tracks] - np.r_[0, np.cumsum(lengths)[:-1]], lengths)
+               + np.arange(int(lengths.sum())))
         sub = replace(data, obs_image=data.obs_image[obs], obs_xy=data.obs_xy[obs],
                       obs_per_px=data.obs_per_px[obs],
                       offsets=np.r_[0, np.cumsum(lengths)],

@@ -187,7 +187,8 @@ class TorchBundleAdjuster:
             raise MappingError("bundle adjustment: the initial cost is not finite (NaN pose or "
                                "point in the input)")
         adjuster = SchurAdjuster(SchurAdjusterOptions(
-            max_iterations=o.max_iterations, function_tolerance=o.relative_tolerance,
+            max_iterations=o.max_iterations,
+            function_tolerance=o.robust_relative_tolerance if robust else o.relative_tolerance,
             device=self.device))
         result = adjuster.solve(model, node_from_world[:, :3, :3], node_from_world[:, :3, 3],
                                 pr.points, pr.image_node[pr.obs_image], pr.obs_point,
