@@ -173,15 +173,13 @@ class BundleProblem:
             world_from_cam = (world_from_node[self.image_node]
                               @ node_from_sensor[self.image_sensor])
             return invert_matrices(world_from_cam)[self.obs_image]
-        node = self.image_node[self.obs_image]
+        node = self.image_node[self.obs_image]  # rolling shutter: interpolated per row
         world_from_body = world_from_node[node]
-        if self.obs_next_node is not None:
-            moving = self.obs_next_node >= 0
-            a, b = node[moving], self.obs_next_node[moving]
-            delta = se3_log(invert_matrices(world_from_node[a]) @ world_from_node[b])
-            world_from_body = world_from_body.copy()
-            world_from_body[moving] = world_from_node[a] @ se3_exp(
-                self.obs_alpha[moving, None] * delta)
+        moving = self.obs_next_node >= 0
+        a, b = node[moving], self.obs_next_node[moving]
+        delta = se3_log(invert_matrices(world_from_node[a]) @ world_from_node[b])
+        world_from_body[moving] = world_from_node[a] @ se3_exp(
+            self.obs_alpha[moving, None] * delta)
         world_from_cam = world_from_body @ node_from_sensor[self.image_sensor[self.obs_image]]
         return invert_matrices(world_from_cam)
 

@@ -153,9 +153,7 @@ def _best_of(cam_from_world, xy, offsets, tracks, tables, options, max_error, be
     bounds = np.searchsorted(np.cumsum(work), np.arange(0, work.sum(), options.chunk_evaluations),
                              side="right")
     bounds = np.unique(np.r_[0, bounds, len(tracks)])
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
-        if hi <= lo:
-            continue
+    for lo, hi in zip(bounds[:-1], bounds[1:]):  # unique bounds: never empty
         chunk = tracks[lo:hi]
         # proposals: (track, obs a, obs b) as absolute observation indices
         track_of = np.repeat(chunk, pairs_per_track[lo:hi])
@@ -193,8 +191,7 @@ def _best_proposals(cam_from_world, xy, offsets, options, max_error) -> np.ndarr
     every = np.arange(len(lengths))
     count = _best_of(cam_from_world, xy, offsets, every,
                      {n: table[:1] for n, table in tables.items()}, options, max_error, best)
-    rest = every[count < lengths]
-    best[rest] = np.nan
+    rest = every[count < lengths]  # the second pass overwrites their first-pair points
     _best_of(cam_from_world, xy, offsets, rest, tables, options, max_error, best)
     return best
 

@@ -54,10 +54,11 @@ def ransac_iterations(inlier_ratio: float, options: TwoViewOptions = TwoViewOpti
     when at least ``inlier_ratio`` of the matches are inliers, at most
     ``options.max_iterations``: a candidate with fewer inliers is rejected anyway, so
     sampling longer cannot accept it. 291 at a ratio of 0.5 (confidence 0.9999)."""
-    miss = 1.0 - inlier_ratio ** 5
-    if inlier_ratio <= 0 or miss <= 0:
-        return options.max_iterations if inlier_ratio <= 0 else 1
-    needed = np.log(1.0 - options.confidence) / np.log(miss)
+    if inlier_ratio <= 0:
+        return options.max_iterations
+    if inlier_ratio >= 1:
+        return 1
+    needed = np.log(1.0 - options.confidence) / np.log(1.0 - inlier_ratio ** 5)
     return int(min(options.max_iterations, np.ceil(needed)))
 
 
