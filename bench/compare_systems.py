@@ -41,9 +41,12 @@ def _rig_from_cam(spec: dict, name: str) -> np.ndarray:
 
 
 def run_ours(system: str, spec: dict, work: Path, device: str, max_keypoints: int) -> dict:
-    retrieval, features, matcher = OURS[system]
+    retrieval, features, matcher, *adaptive = OURS[system]
     run = work / "run"
     extra = ["--config", "config/av.yaml"] if spec["name"] == "kitti" else []
+    if adaptive:
+        extra += ["--set", f"features.matcher.{matcher}.depth_confidence=0.95",
+                  "--set", f"features.matcher.{matcher}.width_confidence=0.99"]
     args = ["map", spec["bag"], "--out", str(run), "--retrieval", retrieval,
             "--features", features, "--matcher", matcher, "--max-keypoints",
             str(max_keypoints), "--device", device, "--seed", "0", "--overwrite", *extra]

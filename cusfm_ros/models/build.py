@@ -21,8 +21,8 @@ import numpy as np
 
 from cusfm_ros.errors import CusfmError
 from cusfm_ros.io.atomic import atomic_directory
-from cusfm_ros.models.store import (MANIFEST, MODEL_FILES, OPSET, default_cache_dir,
-                                    read_manifest)
+from cusfm_ros.models.store import (ADAPTIVE_MATCHERS, MANIFEST, MODEL_FILES, OPSET,
+                                    default_cache_dir, read_manifest)
 from cusfm_ros.models.weights import sha256, weights_path
 
 logger = logging.getLogger(__name__)
@@ -96,6 +96,19 @@ def _export(module, args: tuple, path: Path, input_names: list[str], output_name
         program.save(str(path))
 
 
+def _export_traced(module, args: tuple, path: Path, input_names: list[str],
+                   output_names: list[str], dynamic_axes: dict) -> None:
+    """TorchScript export: ~1 s a graph against the dynamo exporter's ~3 s; enough for the
+    matcher's pieces (plain linear algebra), which number 2 x layers + 1 per matcher."""
+    torch = _torch()
+    _quiet_exporter()
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module, args, str(path), dynamo=False, opset_version=OPSET,
+                          input_names=input_names, output_names=output_names,
+                          dynamic_axes=dynamic_axes)
+
+
 def _check(path: Path, feeds: dict, expected: list[np.ndarray], what: str, atol: float) -> float:
     import onnxruntime
 
@@ -127,6 +140,54 @@ def _export_matcher(model, descriptor_dim: int, path: Path, what: str) -> dict:
     error = _check(path, dict(zip(names, [a.numpy() for a in check], strict=True)),
                    [expected.numpy()], what, 1e-3)
     return {"max_abs_error_vs_torch": error}
+
+
+def _export_adaptive(model, descriptor_dim: int, folder: Path, what: str) -> dict[str, dict]:
+    """The matcher in pieces (``Embed``, each ``LayerStep`` and ``Assign``) for the adaptive
+    matcher, each with dynamic keypoint counts and checked against torch -> manifest entries
+    by piece name."""
+    torch = _torch()
+    from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep
+
+    folder.mkdir(parents=True, exist_ok=True)
+    inputs = (torch.rand(1, 64, 2) * 2 - 1, torch.rand(1, 48, 2) * 2 - 1,
+              torch.nn.functional.normalize(torch.randn(1, 64, descriptor_dim), dim=-1),
+              torch.nn.functional.normalize(torch.randn(1, 48, descriptor_dim), dim=-1))
+    entries = {}
+
+    def piece(name, module, args, input_names, output_names, axes, atol=1e-3):
+        path = folder / f"{name}.onnx"
+        dynamic = {name: {axis: f"points{i % 2}"} for i, (name, axis) in
+                   enumerate(zip(input_names, axes, strict=True))}
+        _export_traced(module, args, path, input_names, output_names, dynamic)
+        # check on other sizes than the export's (37 and 41 points)
+        check = tuple(a[..., :37, :] if i % 2 == 0 else a[..., :41, :]
+                      for i, a in enumerate(args))
+        with torch.no_grad():
+            expected = module(*check)
+            expected = (expected,) if isinstance(expected, torch.Tensor) else expected
+        feeds = dict(zip(input_names, [a.numpy() for a in check], strict=True))
+        entries[name] = {"max_abs_error_vs_torch": _check(
+            path, feeds, [e.numpy() for e in expected], f"{what} {name}", atol)}
+        with torch.no_grad():
+            return module(*args)
+
+    embedded = piece("embed", Embed(model), inputs, ["kpts0", "kpts1", "desc0", "desc1"],
+                     ["desc0_out", "desc1_out", "encoding0", "encoding1"], (1, 1, 1, 1))
+    # the encodings' point axis is the one before last
+    layer_shapes = (1, 1, 3, 3)
+    for i in range(len(model.transformers)):
+        step = LayerStep(model, i)
+        outputs = ["desc0_out", "desc1_out"]
+        if not step.last:
+            outputs += ["token0", "token1", "matchability0", "matchability1"]
+        state = piece(f"layer{i}", step, tuple(embedded), ["desc0", "desc1", "encoding0",
+                                                            "encoding1"], outputs, layer_shapes)
+        # log probabilities reach -30 or so on random inputs: float32 rounding grows with them
+        piece(f"assign{i}", Assign(model, i), tuple(state[:2]), ["desc0", "desc1"], ["scores"],
+              (1, 1), atol=1e-2)
+        embedded = (state[0], state[1], embedded[2], embedded[3])
+    return entries
 
 
 def _export_xfeat(model, path: Path) -> dict:
@@ -197,6 +258,11 @@ class ModelBuilder:
                                                      tmp / MODEL_FILES["lighterglue"],
                                                      "LighterGlue")
             entries["xfeat"] = _export_xfeat(load_xfeat(), tmp / MODEL_FILES["xfeat"])
+            for key, model, dim in (("lightglue", lightglue, 128),
+                                    ("lighterglue", load_lightglue("xfeat-lighterglue"), 64)):
+                folder = ADAPTIVE_MATCHERS[key][0]
+                pieces = _export_adaptive(model, dim, tmp / folder, f"{key} (adaptive)")
+                entries.update({f"{key}_{name}": entry for name, entry in pieces.items()})
 
             for key, entry in entries.items():
                 entry["file"] = MODEL_FILES[key]

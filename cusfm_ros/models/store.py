@@ -12,6 +12,7 @@ import logging
 import os
 from pathlib import Path
 
+from cusfm_ros.core.features.lightglue import LightGlueMatcher, LighterGlueMatcher
 from cusfm_ros.errors import CusfmError
 
 logger = logging.getLogger(__name__)
@@ -21,6 +22,20 @@ OPSET = 18
 MODEL_FILES = {"aliked_dense": "aliked_dense.onnx", "aliked_sddh": "aliked_sddh.onnx",
                "lightglue": "aliked_lightglue.onnx", "xfeat": "xfeat.onnx",
                "lighterglue": "xfeat_lighterglue.onnx"}
+ADAPTIVE_MATCHERS = {m.name: (m.adaptive_folder, m.layers)
+                     for m in (LightGlueMatcher, LighterGlueMatcher)}
+"""Per-layer graphs of each matcher for adaptive depth and width: folder, layer count."""
+
+
+def adaptive_pieces(matcher: str) -> dict[str, str]:
+    """Model keys -> files of one matcher's pieces (embed, then each layer and its head)."""
+    folder, layers = ADAPTIVE_MATCHERS[matcher]
+    names = ["embed"] + [f"{kind}{i}" for i in range(layers) for kind in ("layer", "assign")]
+    return {f"{matcher}_{name}": f"{folder}/{name}.onnx" for name in names}
+
+
+for _matcher in ADAPTIVE_MATCHERS:
+    MODEL_FILES.update(adaptive_pieces(_matcher))
 
 
 class ModelCacheError(CusfmError):

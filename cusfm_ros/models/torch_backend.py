@@ -10,15 +10,18 @@ from __future__ import annotations
 import numpy as np
 
 from cusfm_ros.core.features.aliked import MIN_IMAGE_PX, AlikedOptions
+from cusfm_ros.core.features.adaptive_lightglue import run_adaptive
 from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LightGlueOptions,
-                                               LighterGlueMatcher, check_descriptors,
-                                               filter_matches, normalize_keypoints)
+                                               LighterGlueMatcher, adaptive_matches,
+                                               check_descriptors, filter_matches,
+                                               normalize_keypoints)
 from cusfm_ros.core.features.types import Features, FeatureError, Matches, prepare_image
 from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, features_in_image,
                                            network_input, network_mask)
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
 from cusfm_ros.models.nets.aliked import detect_keypoints
+from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep
 from cusfm_ros.models.nets.xfeat import detect_and_describe
 
 
@@ -102,6 +105,22 @@ class TorchXFeatExtractor:
                                  descriptors.cpu().numpy(), factor, (w, h))
 
 
+class _TorchLayerSteps:
+    """The torch network in pieces, as ``adaptive_lightglue.LayerSteps``."""
+
+    def __init__(self, model) -> None:
+        self.layers = len(model.transformers)
+        self.embed = Embed(model)
+        self._layers = [LayerStep(model, i) for i in range(self.layers)]
+        self._assign = [Assign(model, i) for i in range(self.layers)]
+
+    def layer(self, index, *state):
+        return self._layers[index](*state)
+
+    def assign(self, index, desc0, desc1):
+        return self._assign[index](desc0, desc1)
+
+
 class TorchLightGlueMatcher:
     parallel_pairs = True
     """Pairs may be matched at once from CPU threads (the GPU queues their kernels)."""
@@ -119,6 +138,7 @@ class TorchLightGlueMatcher:
         self.options = options
         self.device = _device(options.device)
         self.model = load_lightglue(weights).to(self.device)
+        self.steps = _TorchLayerSteps(self.model)
 
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
@@ -133,8 +153,19 @@ class TorchLightGlueMatcher:
                 return torch.from_numpy(np.ascontiguousarray(array, np.float32))[None].to(
                     self.device)
 
-            scores = self.model(
-                tensor(normalize_keypoints(features0.keypoints_px, features0.image_size)),
-                tensor(normalize_keypoints(features1.keypoints_px, features1.image_size)),
-                tensor(features0.descriptors), tensor(features1.descriptors))
-        return filter_matches(scores[0].float().cpu().numpy(), self.options.filter_threshold)
+            inputs = (tensor(normalize_keypoints(features0.keypoints_px, features0.image_size)),
+                      tensor(normalize_keypoints(features1.keypoints_px, features1.image_size)),
+                      tensor(features0.descriptors), tensor(features1.descriptors))
+            o = self.options
+            if o.adaptive:
+                # the reference prunes on a GPU only above 1024 points: below, the gather
+                # costs more than the attention it saves
+                result = run_adaptive(self.steps, *inputs, o.depth_confidence,
+                                      o.width_confidence,
+                                      1024 if self.device.type == "cuda" else 0)
+                result.scores = None if result.scores is None else \
+                    result.scores.float().cpu().numpy()
+                result.kept0, result.kept1 = result.kept0.cpu().numpy(), result.kept1.cpu().numpy()
+                return adaptive_matches(result, o.filter_threshold)
+            scores = self.model(*inputs)
+        return filter_matches(scores[0].float().cpu().numpy(), o.filter_threshold)

@@ -1,5 +1,7 @@
-"""LightGlue matching through ONNX Runtime (all layers; no early exit in the graph): the ALIKED
-weights (``lightglue``) and XFeat's LighterGlue (``lighterglue``, a 96-d, 6-layer LightGlue)."""
+"""LightGlue matching through ONNX Runtime: the ALIKED weights (``lightglue``) and XFeat's
+LighterGlue (``lighterglue``, a 96-d, 6-layer LightGlue). By default one graph runs every layer;
+with ``depth_confidence`` or ``width_confidence`` set, the per-layer graphs run one at a time
+and ``adaptive_lightglue`` decides between them when to stop and which points to drop."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cusfm_ros.core.features.adaptive_lightglue import run_adaptive
 from cusfm_ros.core.features.onnx_session import make_session
 from cusfm_ros.core.features.types import FeatureError, Features, Matches
 from cusfm_ros.errors import ConfigError
@@ -17,6 +20,12 @@ from cusfm_ros.errors import ConfigError
 class LightGlueOptions:
     filter_threshold: float = 0.1
     """Minimum match confidence."""
+    depth_confidence: float = -1.0
+    """Adaptive depth: stop after the layer where more than this share of the points is
+    confident (the reference's 0.95); -1 runs every layer."""
+    width_confidence: float = -1.0
+    """Adaptive width: drop points whose matchability is below 1 - this (the reference's 0.99)
+    once they are confident; -1 keeps every point."""
     device: str = "auto"
     threads: int = 0
 
@@ -24,11 +33,30 @@ class LightGlueOptions:
         if not 0 <= self.filter_threshold < 1 or self.threads < 0:
             raise ConfigError(f"LightGlue: filter_threshold must be in [0, 1) and threads >= 0, "
                               f"got {self.filter_threshold} and {self.threads}")
+        for name in ("depth_confidence", "width_confidence"):
+            value = getattr(self, name)
+            if value != -1 and not 0 < value < 1:
+                raise ConfigError(f"LightGlue: {name} must be in (0, 1), or -1 to turn it "
+                                  f"off; got {value}")
+
+    @property
+    def adaptive(self) -> bool:
+        return self.depth_confidence > 0 or self.width_confidence > 0
 
 
 def normalize_keypoints(keypoints_px: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     size = np.asarray(image_size, np.float32)
     return ((keypoints_px - size / 2) / (size.max() / 2)).astype(np.float32)
+
+
+def adaptive_matches(result, threshold: float) -> Matches:
+    """Matches of an adaptive run, indexed into the original keypoints."""
+    if result.scores is None:
+        return Matches.empty()
+    matches = filter_matches(result.scores, threshold)
+    kept0, kept1 = np.asarray(result.kept0), np.asarray(result.kept1)
+    return Matches(np.stack([kept0[matches.indices[:, 0]], kept1[matches.indices[:, 1]]],
+                            axis=1).astype(np.int64), matches.confidences)
 
 
 def filter_matches(scores: np.ndarray, threshold: float) -> Matches:
@@ -50,18 +78,50 @@ def check_descriptors(matcher, features0: Features, features1: Features) -> None
                                "--matcher knn for them")
 
 
+class _OnnxLayerSteps:
+    """The per-layer graphs of ``cusfm models build`` as ``adaptive_lightglue.LayerSteps``."""
+
+    def __init__(self, folder: Path, layers: int, device: str, threads: int) -> None:
+        self.layers = layers
+
+        def session(name):
+            return make_session(folder / f"{name}.onnx", device, threads)
+
+        self._embed = session("embed")
+        self._layers = [session(f"layer{i}") for i in range(layers)]
+        self._assign = [session(f"assign{i}") for i in range(layers)]
+
+    def embed(self, kpts0, kpts1, desc0, desc1):
+        return self._embed.run(None, {"kpts0": kpts0, "kpts1": kpts1, "desc0": desc0,
+                                      "desc1": desc1})
+
+    def layer(self, index, desc0, desc1, encoding0, encoding1):
+        return self._layers[index].run(None, {"desc0": desc0, "desc1": desc1,
+                                              "encoding0": encoding0, "encoding1": encoding1})
+
+    def assign(self, index, desc0, desc1):
+        return self._assign[index].run(None, {"desc0": desc0, "desc1": desc1})[0]
+
+
 class LightGlueMatcher:
     name = "lightglue"
     title = "LightGlue (ALIKED weights)"
     extractor = "aliked"
     descriptor_dim = 128
     model_file = "aliked_lightglue.onnx"
+    adaptive_folder = "aliked_lightglue_adaptive"
+    layers = 9
 
     def __init__(self, model_dir: str | Path, options: LightGlueOptions = LightGlueOptions()
                  ) -> None:
         self.options = options
-        self.session = make_session(Path(model_dir) / self.model_file, options.device,
-                                    options.threads)
+        if options.adaptive:
+            self.session = None
+            self.steps = _OnnxLayerSteps(Path(model_dir) / self.adaptive_folder, self.layers,
+                                         options.device, options.threads)
+        else:
+            self.session = make_session(Path(model_dir) / self.model_file, options.device,
+                                        options.threads)
 
     def config(self) -> dict:
         return {"name": self.name, **self.options.__dict__}
@@ -76,8 +136,12 @@ class LightGlueMatcher:
             "desc0": features0.descriptors.astype(np.float32)[None],
             "desc1": features1.descriptors.astype(np.float32)[None],
         }
+        o = self.options
+        if o.adaptive:
+            return adaptive_matches(run_adaptive(self.steps, *feeds.values(), o.depth_confidence,
+                                                 o.width_confidence), o.filter_threshold)
         scores = self.session.run(None, feeds)[0][0]
-        return filter_matches(scores, self.options.filter_threshold)
+        return filter_matches(scores, o.filter_threshold)
 
 
 class LighterGlueMatcher(LightGlueMatcher):
@@ -88,3 +152,5 @@ class LighterGlueMatcher(LightGlueMatcher):
     extractor = "xfeat"
     descriptor_dim = 64
     model_file = "xfeat_lighterglue.onnx"
+    adaptive_folder = "xfeat_lighterglue_adaptive"
+    layers = 6

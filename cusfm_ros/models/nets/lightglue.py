@@ -2,8 +2,11 @@
 
 ``LightGlueNet.forward`` runs all layers (no early exit, no point pruning) and returns the log
 assignment matrix (B, M+1, N+1); this is the graph exported to ONNX with dynamic keypoint
-counts. Attention is written with explicit matrix products and softmax so that the export is a
-plain graph. Match filtering (mutual best + threshold) lives in numpy at run time
+counts. The adaptive variant (early exit and point pruning, decided between layers) runs the
+pieces one at a time: ``Embed``, ``LayerStep`` and ``Assign`` are those pieces, exported one
+graph each; the decisions live in ``cusfm_ros.core.features.adaptive_lightglue``. Attention
+is written with explicit matrix products and softmax so that the export is a plain graph.
+Match filtering (mutual best + threshold) lives in numpy at run time
 (``cusfm_ros.core.features.lightglue``) and in ``filter_matches`` here for the torch backend.
 """
 
@@ -124,10 +127,19 @@ class MatchAssignment(nn.Module):
         return torch.cat([top, bottom], dim=1)
 
 
+    def matchability_of(self, desc: torch.Tensor) -> torch.Tensor:
+        """How likely each point is to match anything at all: (B, N) in [0, 1]."""
+        return torch.sigmoid(self.matchability(desc)).squeeze(-1)
+
+
 class TokenConfidence(nn.Module):
     def __init__(self, dim: int) -> None:
         super().__init__()
         self.token = nn.Sequential(nn.Linear(dim, 1), nn.Sigmoid())
+
+    def forward(self, desc: torch.Tensor) -> torch.Tensor:
+        """How sure the layer is that each point's assignment will not change: (B, N)."""
+        return self.token(desc).squeeze(-1)
 
 
 class LightGlueNet(nn.Module):
@@ -153,6 +165,48 @@ class LightGlueNet(nn.Module):
         for layer in self.transformers:
             desc0, desc1 = layer(desc0, desc1, encoding0, encoding1)
         return self.log_assignment[-1](desc0, desc1)
+
+
+class Embed(nn.Module):
+    """Input projection and positional encoding: the part before the first layer."""
+
+    def __init__(self, net: LightGlueNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, kpts0, kpts1, desc0, desc1):
+        return (self.net.input_proj(desc0), self.net.input_proj(desc1),
+                self.net.posenc(kpts0), self.net.posenc(kpts1))
+
+
+class LayerStep(nn.Module):
+    """Transformer layer ``index``; below the last layer also each point's token confidence and
+    matchability, which the adaptive matcher reads to stop early or prune points."""
+
+    def __init__(self, net: LightGlueNet, index: int) -> None:
+        super().__init__()
+        self.net, self.index = net, index
+        self.last = index == len(net.transformers) - 1
+
+    def forward(self, desc0, desc1, encoding0, encoding1):
+        desc0, desc1 = self.net.transformers[self.index](desc0, desc1, encoding0, encoding1)
+        if self.last:
+            return desc0, desc1
+        token = self.net.token_confidence[self.index]
+        assignment = self.net.log_assignment[self.index]
+        return (desc0, desc1, token(desc0), token(desc1), assignment.matchability_of(desc0),
+                assignment.matchability_of(desc1))
+
+
+class Assign(nn.Module):
+    """The log assignment head of layer ``index`` (the one the adaptive matcher stopped at)."""
+
+    def __init__(self, net: LightGlueNet, index: int) -> None:
+        super().__init__()
+        self.head = net.log_assignment[index]
+
+    def forward(self, desc0, desc1):
+        return self.head(desc0, desc1)
 
 
 def filter_matches(scores: torch.Tensor, threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
