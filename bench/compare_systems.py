@@ -45,8 +45,7 @@ def run_ours(system: str, spec: dict, work: Path, device: str, max_keypoints: in
     run = work / "run"
     extra = ["--config", "config/av.yaml"] if spec["name"] == "kitti" else []
     if adaptive:
-        extra += ["--set", f"features.matcher.{matcher}.depth_confidence=0.95",
-                  "--set", f"features.matcher.{matcher}.width_confidence=0.99"]
+        extra += ["--matcher-depth-confidence", "0.95", "--matcher-width-confidence", "0.99"]
     args = ["map", spec["bag"], "--out", str(run), "--retrieval", retrieval,
             "--features", features, "--matcher", matcher, "--max-keypoints",
             str(max_keypoints), "--device", device, "--seed", "0", "--overwrite", *extra]

@@ -221,3 +221,17 @@ def test_adaptive_lighterglue_keeps_most_matches(model_dir):
     adaptive = LighterGlueMatcher(model_dir, ADAPTIVE).match(f0, f1)
     shared = set(map(tuple, full.indices)) & set(map(tuple, adaptive.indices))
     assert len(full) > 200 and len(shared) > 0.85 * len(full), (len(full), len(shared))
+
+
+def test_the_switches_set_both_learned_matchers():
+    from cusfm_ros.pipeline.options import resolve_options, switch_overrides
+
+    options = resolve_options(None, switch_overrides({"matcher_depth_confidence": 0.95,
+                                                      "matcher_width_confidence": 0.99}))
+    for matcher in (options.features.matcher.lightglue, options.features.matcher.lighterglue):
+        assert (matcher.depth_confidence, matcher.width_confidence) == (0.95, 0.99)
+        assert matcher.adaptive
+    defaults = resolve_options(None, {}).features.matcher
+    assert not defaults.lightglue.adaptive and not defaults.lighterglue.adaptive
+    with pytest.raises(ConfigError, match="depth_confidence must be in"):
+        resolve_options(None, switch_overrides({"matcher_depth_confidence": 2.0}))

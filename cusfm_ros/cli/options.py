@@ -47,6 +47,14 @@ def add_feature_arguments(parser: argparse.ArgumentParser) -> None:
                         help="default: lightglue for aliked, lighterglue for xfeat, knn for sift")
     parser.add_argument("--max-keypoints", type=int, default=None, help="default 2048")
     parser.add_argument("--resize-max-px", type=int, default=None)
+    parser.add_argument("--matcher-depth-confidence", type=float, default=None, metavar="C",
+                        help="adaptive LightGlue/LighterGlue: stop after the layer where this "
+                             "share of points is confident (the reference's 0.95; default -1: "
+                             "every layer)")
+    parser.add_argument("--matcher-width-confidence", type=float, default=None, metavar="C",
+                        help="adaptive LightGlue/LighterGlue: drop points whose matchability "
+                             "is below 1 - C once confident (the reference's 0.99; default -1: "
+                             "keep all)")
     parser.add_argument("--device", choices=DEVICES, default=None)
     parser.add_argument("--cpu-threads", type=int, default=None, metavar="N",
                         help="threads for per-pair matching and verification (default 0: "
