@@ -192,12 +192,16 @@ def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
                                       odom_yaw_drift_deg_per_m=0.3, odom_scale_error=0.02)
                     ).generate(tmp_path / "sim")
     run = tmp_path / "run"
+    # adaptive LightGlue (early exit, point pruning) end to end: most loop candidates do not
+    # overlap, and it prunes their points after the first layers
     args = ["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
-            "--max-keypoints", "1024", "--rgb"]
+            "--max-keypoints", "1024", "--rgb", "--matcher-depth-confidence", "0.95",
+            "--matcher-width-confidence", "0.99"]
     assert main(args) == 0
     report = json.loads((run / "report.json").read_text())
     assert set(report["stages"]) == {"keyframes", "features", "vocabulary", "loops", "pairs",
                                      "pose_graph", "matching", "mapping", "export", "map"}
+    assert report["options"]["features"]["matcher"]["lightglue"]["depth_confidence"] == 0.95
     loops = json.loads((run / "loops" / "loops.json").read_text())["loops"]
     assert {"query", "match", "query_stamp_ns", "match_stamp_ns", "inliers", "score"} <= set(
         loops[0])
