@@ -252,17 +252,15 @@ class ModelBuilder:
                            [descriptors.numpy()], "ALIKED descriptor head", 1e-4)
             entries["aliked_sddh"] = {"max_abs_error_vs_torch": error}
 
-            entries["lightglue"] = _export_matcher(lightglue, 128, tmp / MODEL_FILES["lightglue"],
-                                                   "LightGlue")
-            entries["lighterglue"] = _export_matcher(load_lightglue("xfeat-lighterglue"), 64,
-                                                     tmp / MODEL_FILES["lighterglue"],
-                                                     "LighterGlue")
-            entries["xfeat"] = _export_xfeat(load_xfeat(), tmp / MODEL_FILES["xfeat"])
-            for key, model, dim in (("lightglue", lightglue, 128),
-                                    ("lighterglue", load_lightglue("xfeat-lighterglue"), 64)):
-                folder = ADAPTIVE_MATCHERS[key][0]
-                pieces = _export_adaptive(model, dim, tmp / folder, f"{key} (adaptive)")
+            # each matcher whole, and in per-layer pieces for the adaptive matcher
+            for key, title, model, dim in (
+                    ("lightglue", "LightGlue", lightglue, 128),
+                    ("lighterglue", "LighterGlue", load_lightglue("xfeat-lighterglue"), 64)):
+                entries[key] = _export_matcher(model, dim, tmp / MODEL_FILES[key], title)
+                pieces = _export_adaptive(model, dim, tmp / ADAPTIVE_MATCHERS[key][0],
+                                          f"{title} (adaptive)")
                 entries.update({f"{key}_{name}": entry for name, entry in pieces.items()})
+            entries["xfeat"] = _export_xfeat(load_xfeat(), tmp / MODEL_FILES["xfeat"])
 
             for key, entry in entries.items():
                 entry["file"] = MODEL_FILES[key]

@@ -12,7 +12,8 @@ import logging
 import os
 from pathlib import Path
 
-from cusfm_ros.core.features.lightglue import LightGlueMatcher, LighterGlueMatcher
+from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LighterGlueMatcher,
+                                               adaptive_piece_names)
 from cusfm_ros.errors import CusfmError
 
 logger = logging.getLogger(__name__)
@@ -30,8 +31,7 @@ ADAPTIVE_MATCHERS = {m.name: (m.adaptive_folder, m.layers)
 def adaptive_pieces(matcher: str) -> dict[str, str]:
     """Model keys -> files of one matcher's pieces (embed, then each layer and its head)."""
     folder, layers = ADAPTIVE_MATCHERS[matcher]
-    names = ["embed"] + [f"{kind}{i}" for i in range(layers) for kind in ("layer", "assign")]
-    return {f"{matcher}_{name}": f"{folder}/{name}.onnx" for name in names}
+    return {f"{matcher}_{name}": f"{folder}/{name}.onnx" for name in adaptive_piece_names(layers)}
 
 
 for _matcher in ADAPTIVE_MATCHERS:

@@ -78,18 +78,22 @@ def check_descriptors(matcher, features0: Features, features1: Features) -> None
                                "--matcher knn for them")
 
 
+def adaptive_piece_names(layers: int) -> list[str]:
+    """The per-layer graphs' names (``NAME.onnx`` in the matcher's adaptive folder): the
+    embedding, then each layer and its assignment head."""
+    return ["embed"] + [f"{kind}{i}" for i in range(layers) for kind in ("layer", "assign")]
+
+
 class _OnnxLayerSteps:
     """The per-layer graphs of ``cusfm models build`` as ``adaptive_lightglue.LayerSteps``."""
 
     def __init__(self, folder: Path, layers: int, device: str, threads: int) -> None:
         self.layers = layers
-
-        def session(name):
-            return make_session(folder / f"{name}.onnx", device, threads)
-
-        self._embed = session("embed")
-        self._layers = [session(f"layer{i}") for i in range(layers)]
-        self._assign = [session(f"assign{i}") for i in range(layers)]
+        sessions = {name: make_session(folder / f"{name}.onnx", device, threads)
+                    for name in adaptive_piece_names(layers)}
+        self._embed = sessions["embed"]
+        self._layers = [sessions[f"layer{i}"] for i in range(layers)]
+        self._assign = [sessions[f"assign{i}"] for i in range(layers)]
 
     def embed(self, kpts0, kpts1, desc0, desc1):
         return self._embed.run(None, {"kpts0": kpts0, "kpts1": kpts1, "desc0": desc0,

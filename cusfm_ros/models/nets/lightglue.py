@@ -126,7 +126,6 @@ class MatchAssignment(nn.Module):
         bottom = torch.cat([dust1, torch.zeros_like(dust1[..., :1])], dim=2)
         return torch.cat([top, bottom], dim=1)
 
-
     def matchability_of(self, desc: torch.Tensor) -> torch.Tensor:
         """How likely each point is to match anything at all: (B, N) in [0, 1]."""
         return torch.sigmoid(self.matchability(desc)).squeeze(-1)
