@@ -73,7 +73,8 @@ def run_system(system: str, spec_path: Path, work: Path, args) -> dict:
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     command = [sys.executable, str(HERE / "compare_systems.py"), system,
-               str(spec_path), str(work), args.device, str(args.max_keypoints)]
+               str(spec_path), str(work), args.device, str(args.max_keypoints),
+               *getattr(args, "cusfm_args", [])]
     started = time.perf_counter()
     with open(work / "log.txt", "wb") as log:
         child = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,

@@ -1,5 +1,6 @@
 """One system of ``bench/compare.py`` on one input, in its own process (so that its peak
-memory is its own): ``python bench/compare_systems.py SYSTEM INPUT_JSON WORK_DIR``.
+memory is its own): ``python bench/compare_systems.py SYSTEM INPUT_JSON WORK_DIR [DEVICE
+[MAX_KEYPOINTS [CUSFM_ARGS...]]]`` (CUSFM_ARGS: more ``cusfm map`` arguments for ours).
 
 Writes ``WORK_DIR/result.json``: ``stages_s`` (seconds by stage), ``trajectory`` (a TUM file
 of the reference camera's ``world_from_cam``, the path every system is scored on),
@@ -40,7 +41,8 @@ def _rig_from_cam(spec: dict, name: str) -> np.ndarray:
     return np.eye(4) if matrix is None else np.asarray(matrix)
 
 
-def run_ours(system: str, spec: dict, work: Path, device: str, max_keypoints: int) -> dict:
+def run_ours(system: str, spec: dict, work: Path, device: str, max_keypoints: int,
+             settings: list[str] = ()) -> dict:
     retrieval, features, matcher, *adaptive = OURS[system]
     run = work / "run"
     extra = ["--config", "config/av.yaml"] if spec["name"] == "kitti" else []
@@ -48,7 +50,8 @@ def run_ours(system: str, spec: dict, work: Path, device: str, max_keypoints: in
         extra += ["--matcher-depth-confidence", "0.95", "--matcher-width-confidence", "0.99"]
     args = ["map", spec["bag"], "--out", str(run), "--retrieval", retrieval,
             "--features", features, "--matcher", matcher, "--max-keypoints",
-            str(max_keypoints), "--device", device, "--seed", "0", "--overwrite", *extra]
+            str(max_keypoints), "--device", device, "--seed", "0", "--overwrite", *extra,
+            *settings]
     if spec["name"] == "kitti":  # 51 frames of a straight road: nothing to loop-close
         args += ["--skip-vocabulary", "--skip-loops"]
     if cusfm(args) != 0:
@@ -210,7 +213,7 @@ def main(argv: list[str]) -> int:
     work.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     if system in OURS:
-        result = run_ours(system, spec, work, device, max_keypoints)
+        result = run_ours(system, spec, work, device, max_keypoints, argv[5:])
     elif system in COLMAP:
         result = run_colmap(system, spec, work)
     else:

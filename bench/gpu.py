@@ -4,7 +4,8 @@ stereo street (2 laps, seed 0) at each frame count, on each device, one process 
 memory, and the ATE, so that speed never hides a worse map.
 
     python bench/gpu.py --out /tmp/gpu [--frames 100 300 1000] [--devices cuda cpu]
-                        [--features sift|aliked|xfeat] [--time-limit-s 1800]
+                        [--features sift|aliked|xfeat] [--adaptive] [--time-limit-s 1800]
+                        [--set KEY=VALUE ...]
 
 Installs nothing: run it where ``make test`` runs, on a machine with a GPU. Writes
 ``OUT/gpu.json`` and ``OUT/gpu.md`` after every run. A run past the time limit is a row
@@ -44,7 +45,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--devices", nargs="+", choices=("cuda", "cpu"), default=["cuda",
                                                                                  "cpu"])
     parser.add_argument("--features", choices=("sift", "aliked", "xfeat"), default="aliked")
+    parser.add_argument("--adaptive", action="store_true",
+                        help="the matcher's early exit and point pruning (aliked, xfeat)")
     parser.add_argument("--max-keypoints", type=int, default=2048)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a setting passed to `cusfm map --set` (repeatable)")
     parser.add_argument("--time-limit-s", type=float, default=1800.0)
     parser.add_argument("--image-size", type=int, nargs=2, default=(1241, 376),
                         metavar=("WIDTH", "HEIGHT"))
@@ -53,13 +58,16 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     header = (f"{compare.machine()}; `python bench/gpu.py "
               f"{' '.join(argv if argv is not None else sys.argv[1:])}`")
-    system = f"ours_view_graph_{args.features}"
+    system = f"ours_view_graph_{args.features}" + ("_adaptive" if args.adaptive else "")
+    if system not in compare.SYSTEMS:
+        parser.error(f"{system} is not a system of bench/compare.py")
     rows = []
     for frames in args.frames:
         spec_path, spec = compare.prepare("street", out / "inputs", frames, args.image_size)
         for device in args.devices:
             run = argparse.Namespace(device=device, max_keypoints=args.max_keypoints,
-                                     time_limit_s=args.time_limit_s)
+                                     time_limit_s=args.time_limit_s,
+                                     cusfm_args=[a for kv in args.set for a in ("--set", kv)])
             result = compare.run_system(system, spec_path, out / "runs" / f"{frames}_{device}",
                                         run)
             rows.append({**compare.row(result, spec), "device": device})

@@ -1,13 +1,17 @@
-"""GPU timing of the torch backend (ALIKED-n16 at 1241x376, LightGlue 2x1024) on a CUDA device.
+"""GPU timing of the torch backend (ALIKED-n16 at 1241x376, LightGlue 2x1024 and 2x2048) on a
+CUDA device.
 
 Usage (on a GPU machine): python bench/gpu_features.py
 Prints median milliseconds (CUDA-synchronized) for the networks alone and end to end (with the
-numpy keypoint detection and host transfers), fp32 and fp16 autocast; asserts nothing.
+keypoint detection and host transfers), fp32 and fp16 autocast, and LightGlue per pair when
+pairs are matched one at a time or padded into batches (``match_many``), with the share of
+fp32's matches that fp16 keeps; asserts nothing.
 """
 
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 
@@ -16,6 +20,7 @@ def main() -> None:
     import torch
 
     from cusfm_ros.core.features.aliked import AlikedOptions
+    from cusfm_ros.core.features.lightglue import LightGlueOptions
     from cusfm_ros.models.nets.aliked import detect_keypoints as torch_detect
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor, TorchLightGlueMatcher
 
@@ -65,8 +70,27 @@ def main() -> None:
             rows.append(("LightGlue 2x1024 fp16 autocast",
                          median_ms(lambda: matcher.match(f0, f1))))
         m32 = matcher.match(f0, f1)
+        agreement = []
+        dense = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, detection_threshold=-1,
+                                                   device="cuda"))
+        g0, g1 = dense.extract(image), dense.extract(other)
+        for batch_pairs, half in ((1, False), (16, False), (16, True), (32, True)):
+            batched = TorchLightGlueMatcher(LightGlueOptions(batch_pairs=batch_pairs,
+                                                             half_precision=half,
+                                                             device="cuda"))
+            pairs = [(g0, g1)] * 32
+            rows.append((f"LightGlue 2x2048 per pair, batches of {batch_pairs}, "
+                         f"{'fp16 autocast' if half else 'fp32'}",
+                         median_ms(partial(batched.match_many, pairs), repeats=5) / 32))
+            agreement.append((batch_pairs, half, batched.match_many(pairs[:2])[0]))
     print(f"keypoints {len(f0)}/{len(f1)}, matches {len(m32)}")
-    print("| stage (H100, torch backend) | median ms |\n|---|---|")
+    reference = {tuple(m) for m in TorchLightGlueMatcher(LightGlueOptions(
+        batch_pairs=1, device="cuda")).match(g0, g1).indices}
+    for batch_pairs, half, found in agreement:
+        common = len(reference & {tuple(m) for m in found.indices})
+        print(f"2x2048, batches of {batch_pairs}, half {half}: {len(found)} matches, {common} "
+              f"of fp32 one at a time's {len(reference)}")
+    print(f"| stage ({torch.cuda.get_device_name()}, torch backend) | median ms |\n|---|---|")
     for name, ms in rows:
         print(f"| {name} | {ms:.2f} |")
 

@@ -392,3 +392,39 @@ def test_torch_backend_on_cuda_equals_onnx_on_cpu(aliked, lightglue, motorcycle)
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
     _torch_backend_agrees("cuda", aliked, lightglue, motorcycle)
+
+
+def _batched_lightglue_equals_one_pair_at_a_time(device, motorcycle):
+    """Pairs of different sizes padded into one batch (masks) give each pair's own matches."""
+    from cusfm_ros.core.features.lightglue import LightGlueOptions
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor, TorchLightGlueMatcher
+
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=1024, device=device))
+    f0, f1 = (extractor.extract(image) for image in motorcycle)
+
+    def first(f, n):
+        return Features(f.keypoints_px[:n], f.scores[:n], f.descriptors[:n], f.image_size)
+
+    pairs = [(f0, f1), (first(f0, 300), f1), (first(f1, 500), first(f0, 700)),
+             (f0, first(f1, 1)), (f1, f0)]
+    matcher = TorchLightGlueMatcher(LightGlueOptions(device=device, batch_pairs=3))
+    batched = matcher.match_many(pairs)
+    single = [matcher.match(*pair) for pair in pairs]
+    assert [len(m) for m in single[:3]] == [len(m) for m in batched[:3]]
+    assert len(single[0]) > 300 and len(single[1]) > 100 and len(batched[3]) == 0
+    for ours, theirs in zip(batched, single):
+        np.testing.assert_array_equal(ours.indices, theirs.indices)
+        np.testing.assert_allclose(ours.confidences, theirs.confidences, atol=1e-4)
+    with pytest.raises(ConfigError, match="batch_pairs >= 1"):
+        LightGlueOptions(batch_pairs=0)
+
+
+def test_batched_lightglue_equals_one_pair_at_a_time_on_cpu(motorcycle):
+    _batched_lightglue_equals_one_pair_at_a_time("cpu", motorcycle)
+
+
+@pytest.mark.gpu
+def test_batched_lightglue_equals_one_pair_at_a_time_on_cuda(motorcycle):
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    _batched_lightglue_equals_one_pair_at_a_time("cuda", motorcycle)

@@ -360,10 +360,29 @@ def test_fingerprints_read_only_the_chosen_component():
     assert option_value(base, path) != option_value(other_sift, path)
 
 
+class _BatchedKnn:
+    """k-NN behind a batched interface (``batch_pairs``, ``match_many``), recording the
+    batches; matching one pair at a time is an error."""
+
+    batch_pairs = 3
+
+    def __init__(self) -> None:
+        from cusfm_ros.core.features.knn import KnnMatcher
+
+        self.knn, self.batches = KnnMatcher(), []
+
+    def match(self, features0, features1):
+        raise AssertionError("a batched matcher was asked for one pair")
+
+    def match_many(self, pairs):
+        self.batches.append(len(pairs))
+        return [self.knn.match(*pair) for pair in pairs]
+
+
 def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monkeypatch):
     """Loops, loop measurement and pair matching run on CPU threads (the measurement on
     processes): the stages on explicit inputs with one thread give what the run with three
-    wrote, and so do two worker processes."""
+    wrote, and so do two worker processes, and a matcher that matches pairs in batches."""
     import functools
 
     import cusfm_ros.pipeline.stages.pose_graph as pose_graph_stage
@@ -394,6 +413,16 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
         assert len(loops) == len(read_loops(run.loops)) > 0
         write_loops(tmp_path / "one_thread.json", loops, keyframes)
         assert (tmp_path / "one_thread.json").read_bytes() == run.loops.read_bytes()
+        # a matcher with a batched path (the torch LightGlue's) gets the candidates a batch
+        # at a time, in the calling thread, and the verification threads get them matched
+        batched = _BatchedKnn()
+        loops_batched, counts = detect_loops(keyframes, features,
+                                             load_vocabulary(run.vocabulary), batched,
+                                             options.loops, 0, threads=2)
+        write_loops(tmp_path / "batched.json", loops_batched, keyframes)
+        assert (tmp_path / "batched.json").read_bytes() == run.loops.read_bytes()
+        assert max(batched.batches) == 3
+        assert sum(batched.batches) == counts["verified_candidates"] > len(loops_batched)
         graph = optimize_pose_graph(keyframes, loops, features, KnnMatcher(),
                                     options.pose_graph, "rig", 0, threads=1)
         written = read_tum(run.pose_graph_poses)
@@ -425,6 +454,20 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
                 FeatureStore(run.verified_matches, {}, read_only=True) as theirs:
             match_pairs(pairs, cameras, store, KnnMatcher(), options.matching, 0, mine, cache,
                         threads=1)
+            for name0, name1 in pairs:
+                assert np.array_equal(mine.matches(name0, name1).indices,
+                                      theirs.matches(name0, name1).indices)
+        # no cache: every pair through the batched path, against one at a time
+        with FeatureStore(tmp_path / "batched.h5", {}) as mine, \
+                FeatureStore(tmp_path / "plain.h5", {}) as theirs:
+            match_pairs(pairs, cameras, store, KnnMatcher(), options.matching, 0, theirs,
+                        threads=1)
+            batched = _BatchedKnn()
+            counts = match_pairs(pairs, cameras, store, batched, options.matching, 0, mine,
+                                 threads=2)
+            assert counts["matcher_runs"] == len(pairs) == sum(batched.batches)
+            assert batched.batches == [3] * (len(pairs) // 3) + [len(pairs) % 3] * (
+                len(pairs) % 3 > 0)
             for name0, name1 in pairs:
                 assert np.array_equal(mine.matches(name0, name1).indices,
                                       theirs.matches(name0, name1).indices)

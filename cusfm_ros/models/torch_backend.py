@@ -21,7 +21,7 @@ from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, feature
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
 from cusfm_ros.models.nets.aliked import detect_keypoints
-from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep
+from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
 from cusfm_ros.models.nets.xfeat import detect_and_describe
 
 
@@ -167,5 +167,68 @@ class TorchLightGlueMatcher:
                     result.scores.float().cpu().numpy()
                 result.kept0, result.kept1 = result.kept0.cpu().numpy(), result.kept1.cpu().numpy()
                 return adaptive_matches(result, o.filter_threshold)
-            scores = self.model(*inputs)
+            with self._precision():
+                scores = self.model(*inputs)
         return filter_matches(scores[0].float().cpu().numpy(), o.filter_threshold)
+
+    def _precision(self):
+        """fp16 autocast on a GPU when ``half_precision`` asks for it (thread-local: no global
+        state changes)."""
+        return self.torch.autocast("cuda", self.torch.float16, enabled=(
+            self.options.half_precision and self.device.type == "cuda"))
+
+    @property
+    def batch_pairs(self) -> int:
+        return 1 if self.options.adaptive else self.options.batch_pairs
+
+    def match_many(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
+        """``match`` of each pair, ``batch_pairs`` pairs per pass over the network."""
+        results: list[Matches | None] = [None] * len(pairs)
+        todo = []
+        for index, (features0, features1) in enumerate(pairs):
+            check_descriptors(self, features0, features1)
+            if len(features0) < 2 or len(features1) < 2:
+                results[index] = Matches.empty()
+            else:
+                todo.append(index)
+        if self.batch_pairs == 1:
+            for index in todo:
+                results[index] = self.match(*pairs[index])
+            return results
+        for start in range(0, len(todo), self.batch_pairs):
+            chunk = todo[start:start + self.batch_pairs]
+            for index, matches in zip(chunk, self._match_padded([pairs[i] for i in chunk])):
+                results[index] = matches
+        return results
+
+    def _match_padded(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
+        """One pass over pairs padded to the largest side of each image, masks marking the
+        real points (``LightGlueNet.forward``); the mutual-best filter runs on the device and
+        only each point's partner, confidence and validity come back."""
+        torch = self.torch
+        counts = np.array([(len(a), len(b)) for a, b in pairs])
+        size = counts.max(0)
+        batch = [[np.zeros((len(pairs), n, d), np.float32) for n in size]
+                 for d in (2, self.descriptor_dim)]
+        masks = [np.zeros((len(pairs), n), bool) for n in size]
+        for b, pair in enumerate(pairs):
+            for side, features in enumerate(pair):
+                n = len(features)
+                batch[0][side][b, :n] = normalize_keypoints(features.keypoints_px,
+                                                            features.image_size)
+                batch[1][side][b, :n] = features.descriptors
+                masks[side][b, :n] = True
+        with torch.inference_mode():
+            def tensor(array):
+                return torch.from_numpy(array).to(self.device, non_blocking=True)
+
+            with self._precision():
+                scores = self.model(*(tensor(a) for a in (*batch[0], *batch[1], *masks)))
+            partner, confidence, valid = (t.cpu().numpy() for t in mutual_best(
+                scores, self.options.filter_threshold))
+        results = []
+        for b, (n0, _) in enumerate(counts):
+            index0 = np.nonzero(valid[b, :n0])[0]
+            results.append(Matches(np.stack([index0, partner[b, index0]], 1).astype(np.int64),
+                                   confidence[b, index0].astype(np.float32)))
+        return results

@@ -154,12 +154,57 @@ class LazyMatcher:
         self.options, self.device, self._matcher = options, device, None
         self._lock, self._run_lock = threading.Lock(), threading.Lock()
 
-    def match(self, features0, features1):
+    def _built(self):
         if self._matcher is None:
             with self._lock:
                 if self._matcher is None:
                     self._matcher = make_matcher(self.options, self.device)
-        if getattr(self._matcher, "parallel_pairs", False):
-            return self._matcher.match(features0, features1)
+        return self._matcher
+
+    def match(self, features0, features1):
+        matcher = self._built()
+        if getattr(matcher, "parallel_pairs", False):
+            return matcher.match(features0, features1)
         with self._run_lock:
-            return self._matcher.match(features0, features1)
+            return matcher.match(features0, features1)
+
+    @property
+    def batch_pairs(self) -> int:
+        """Pairs worth matching in one ``match_many`` call (1: call ``match`` per pair, from
+        the verification threads), known without building the matcher."""
+        matcher = self.options.matcher
+        if matcher.name == "knn" or not self.options.use_torch(self.device):
+            return 1
+        return 1 if matcher.selected.adaptive else matcher.selected.batch_pairs
+
+    def match_many(self, pairs):
+        return self._built().match_many(pairs)
+
+
+def with_batched_matches(items, matcher, pair_of, with_matches):
+    """``items`` as they come, except that the pairs they still need matched (``pair_of(item)``:
+    (features0, features1), or None) are matched ``matcher.batch_pairs`` at a time, in the
+    calling thread, and put in with ``with_matches(item, matches)``; the verification threads
+    downstream get their matches ready. A matcher with no batched path leaves ``items`` as they
+    are (each pair is matched where it is verified)."""
+    batch = getattr(matcher, "batch_pairs", 1)
+    if batch <= 1:
+        yield from items
+        return
+    held, wanted = [], []
+    for item in items:
+        held.append(item)
+        pair = pair_of(item)
+        if pair is not None:
+            wanted.append((len(held) - 1, pair))
+        if len(wanted) == batch:
+            yield from _fill(held, wanted, matcher, with_matches)
+            held, wanted = [], []
+    yield from _fill(held, wanted, matcher, with_matches)
+
+
+def _fill(held, wanted, matcher, with_matches):
+    found = matcher.match_many([pair for _, pair in wanted]) if wanted else []
+    for (index, _), matches in zip(wanted, found):
+        held[index] = with_matches(held[index], matches)
+    yield from held

@@ -26,13 +26,21 @@ class LightGlueOptions:
     width_confidence: float = -1.0
     """Adaptive width: drop points whose matchability is below 1 - this (the reference's 0.99)
     once they are confident; -1 keeps every point."""
+    batch_pairs: int = 16
+    """Pairs the torch backend matches at once, padded to the largest and masked (one pass
+    over the network instead of one per pair: on a GPU the per-pair cost is mostly Python and
+    kernel launches). 1: one pair at a time; the ONNX backend and adaptive runs always are."""
+    half_precision: bool = False
+    """The torch backend on a GPU runs the network under fp16 autocast (matrix products in
+    half precision, softmaxes in fp32); elsewhere it has no effect."""
     device: str = "auto"
     threads: int = 0
 
     def __post_init__(self) -> None:
-        if not 0 <= self.filter_threshold < 1 or self.threads < 0:
-            raise ConfigError(f"LightGlue: filter_threshold must be in [0, 1) and threads >= 0, "
-                              f"got {self.filter_threshold} and {self.threads}")
+        if not 0 <= self.filter_threshold < 1 or self.threads < 0 or self.batch_pairs < 1:
+            raise ConfigError(f"LightGlue: filter_threshold must be in [0, 1), threads >= 0 and "
+                              f"batch_pairs >= 1, got {self.filter_threshold}, {self.threads} "
+                              f"and {self.batch_pairs}")
         for name in ("depth_confidence", "width_confidence"):
             value = getattr(self, name)
             if value != -1 and not 0 < value < 1:

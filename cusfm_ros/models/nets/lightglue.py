@@ -49,9 +49,19 @@ def _ffn(dim: int) -> nn.Sequential:
                          nn.Linear(2 * dim, dim))
 
 
-def _attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+def _masked(sim: torch.Tensor, keys: torch.Tensor | None) -> torch.Tensor:
+    """``sim`` (B, ..., N) with the padded keys' entries at -inf; ``keys`` (B, N) marks the real
+    points of a batch padded to one size (None: no padding, the exported graph)."""
+    if keys is None:
+        return sim
+    shape = (keys.shape[0],) + (1,) * (sim.dim() - 2) + (keys.shape[1],)
+    return sim.masked_fill(~keys.view(shape), float("-inf"))
+
+
+def _attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor,
+               keys: torch.Tensor | None = None) -> torch.Tensor:
     scale = q.shape[-1] ** -0.5
-    return torch.softmax(q @ k.transpose(-1, -2) * scale, dim=-1) @ v
+    return torch.softmax(_masked(q @ k.transpose(-1, -2) * scale, keys), dim=-1) @ v
 
 
 class SelfBlock(nn.Module):
@@ -62,10 +72,11 @@ class SelfBlock(nn.Module):
         self.out_proj = nn.Linear(dim, dim)
         self.ffn = _ffn(dim)
 
-    def forward(self, x: torch.Tensor, encoding: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, encoding: torch.Tensor,
+                mask: torch.Tensor | None = None) -> torch.Tensor:
         qkv = self.Wqkv(x).unflatten(-1, (self.heads, -1, 3)).transpose(1, 2)
         q, k, v = qkv[..., 0], qkv[..., 1], qkv[..., 2]
-        context = _attention(_rotary(encoding, q), _rotary(encoding, k), v)
+        context = _attention(_rotary(encoding, q), _rotary(encoding, k), v, mask)
         message = self.out_proj(context.transpose(1, 2).flatten(start_dim=-2))
         return x + self.ffn(torch.cat([x, message], -1))
 
@@ -80,15 +91,16 @@ class CrossBlock(nn.Module):
         self.to_out = nn.Linear(dim, dim)
         self.ffn = _ffn(dim)
 
-    def forward(self, x0: torch.Tensor, x1: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, x0: torch.Tensor, x1: torch.Tensor, mask0: torch.Tensor | None = None,
+                mask1: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         def heads(t):
             return t.unflatten(-1, (self.heads, -1)).transpose(1, 2)
 
         qk0, qk1 = heads(self.to_qk(x0)) * self.scale**0.5, heads(self.to_qk(x1)) * self.scale**0.5
         v0, v1 = heads(self.to_v(x0)), heads(self.to_v(x1))
         sim = qk0 @ qk1.transpose(-1, -2)
-        m0 = torch.softmax(sim, dim=-1) @ v1
-        m1 = torch.softmax(sim.transpose(-1, -2), dim=-1) @ v0
+        m0 = torch.softmax(_masked(sim, mask1), dim=-1) @ v1
+        m1 = torch.softmax(_masked(sim.transpose(-1, -2), mask0), dim=-1) @ v0
         m0 = self.to_out(m0.transpose(1, 2).flatten(start_dim=-2))
         m1 = self.to_out(m1.transpose(1, 2).flatten(start_dim=-2))
         return (x0 + self.ffn(torch.cat([x0, m0], -1)), x1 + self.ffn(torch.cat([x1, m1], -1)))
@@ -100,8 +112,9 @@ class TransformerLayer(nn.Module):
         self.self_attn = SelfBlock(dim, heads)
         self.cross_attn = CrossBlock(dim, heads)
 
-    def forward(self, desc0, desc1, encoding0, encoding1):
-        return self.cross_attn(self.self_attn(desc0, encoding0), self.self_attn(desc1, encoding1))
+    def forward(self, desc0, desc1, encoding0, encoding1, mask0=None, mask1=None):
+        return self.cross_attn(self.self_attn(desc0, encoding0, mask0),
+                               self.self_attn(desc1, encoding1, mask1), mask0, mask1)
 
 
 class MatchAssignment(nn.Module):
@@ -110,14 +123,18 @@ class MatchAssignment(nn.Module):
         self.matchability = nn.Linear(dim, 1)
         self.final_proj = nn.Linear(dim, dim)
 
-    def forward(self, desc0: torch.Tensor, desc1: torch.Tensor) -> torch.Tensor:
+    def forward(self, desc0: torch.Tensor, desc1: torch.Tensor, mask0: torch.Tensor | None = None,
+                mask1: torch.Tensor | None = None) -> torch.Tensor:
+        """Log assignment (B, M+1, N+1), the dustbins last; with masks, the entries of padded
+        points are -inf and the real ones equal those of the unpadded pair."""
         d = desc0.shape[-1]
         mdesc0 = self.final_proj(desc0) / d**0.25
         mdesc1 = self.final_proj(desc1) / d**0.25
         sim = mdesc0 @ mdesc1.transpose(-1, -2)
         z0, z1 = self.matchability(desc0), self.matchability(desc1)
         certainties = F.logsigmoid(z0) + F.logsigmoid(z1).transpose(1, 2)
-        scores = (F.log_softmax(sim, 2) + F.log_softmax(sim.transpose(-1, -2), 2).transpose(-1, -2)
+        scores = (F.log_softmax(_masked(sim, mask1), 2)
+                  + F.log_softmax(_masked(sim.transpose(-1, -2), mask0), 2).transpose(-1, -2)
                   + certainties)
         # append the dustbin row and column without in-place writes (export friendly)
         dust0 = F.logsigmoid(-z0)  # (B, M, 1)
@@ -157,13 +174,18 @@ class LightGlueNet(nn.Module):
         self.load_state_dict(state, strict=True)
 
     def forward(self, kpts0: torch.Tensor, kpts1: torch.Tensor, desc0: torch.Tensor,
-                desc1: torch.Tensor) -> torch.Tensor:
-        """Normalized keypoints (B, M|N, 2), descriptors (B, M|N, D) -> log assignment."""
+                desc1: torch.Tensor, mask0: torch.Tensor | None = None,
+                mask1: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalized keypoints (B, M|N, 2), descriptors (B, M|N, D) -> log assignment.
+
+        ``mask0`` (B, M) and ``mask1`` (B, N), True for real points, let pairs of different
+        sizes run as one padded batch: attention and the assignment's softmaxes skip the padded
+        points (the exported graph has no masks: one pair at a time)."""
         desc0, desc1 = self.input_proj(desc0), self.input_proj(desc1)
         encoding0, encoding1 = self.posenc(kpts0), self.posenc(kpts1)
         for layer in self.transformers:
-            desc0, desc1 = layer(desc0, desc1, encoding0, encoding1)
-        return self.log_assignment[-1](desc0, desc1)
+            desc0, desc1 = layer(desc0, desc1, encoding0, encoding1, mask0, mask1)
+        return self.log_assignment[-1](desc0, desc1, mask0, mask1)
 
 
 class Embed(nn.Module):
@@ -208,13 +230,21 @@ class Assign(nn.Module):
         return self.head(desc0, desc1)
 
 
+def mutual_best(scores: torch.Tensor, threshold: float
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each point of image 0's best partner (B, M), its confidence (B, M), and whether the
+    pair is mutual and above ``threshold`` (B, M): ``filter_matches`` for a batch, on the
+    device (padded points score -inf, so they are never valid)."""
+    inner = scores[:, :-1, :-1]
+    max0, max1 = inner.max(2), inner.max(1)
+    m0 = max0.indices
+    mutual = torch.arange(m0.shape[1], device=m0.device) == max1.indices.gather(1, m0)
+    confidence = max0.values.exp()
+    return m0, confidence, mutual & (confidence > threshold)
+
+
 def filter_matches(scores: torch.Tensor, threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Mutual best matches above ``threshold`` -> (matches (K, 2), confidences (K,)); B = 1."""
-    inner = scores[0, :-1, :-1]
-    max0, max1 = inner.max(1), inner.max(0)
-    m0, m1 = max0.indices, max1.indices
-    mutual = torch.arange(len(m0)) == m1[m0]
-    confidence = max0.values.exp()
-    valid = mutual & (confidence > threshold)
-    index0 = torch.nonzero(valid)[:, 0]
-    return torch.stack([index0, m0[index0]], 1), confidence[index0]
+    m0, confidence, valid = mutual_best(scores[:1], threshold)
+    index0 = torch.nonzero(valid[0])[:, 0]
+    return torch.stack([index0, m0[0, index0]], 1), confidence[0, index0]

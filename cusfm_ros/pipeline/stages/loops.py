@@ -22,7 +22,7 @@ from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import write_loops
 from cusfm_ros.io.vocabulary_file import load_vocabulary
-from cusfm_ros.pipeline.components import LazyMatcher
+from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.parallel import ordered_map
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
@@ -62,7 +62,8 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
     path_m = keyframes.travelled_path_m(frames)
 
     def candidates():
-        """(query index, query, match, score, cached matches or None), in query order."""
+        """(query index, query, match, score, cached matches or None, whether they are to be
+        computed), in query order."""
         for index, query in enumerate(frames):
             found = database.query(
                 None, query.stamp_ns, options.top_k, options.exclude_within_s,
@@ -72,17 +73,22 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
             for candidate in found:
                 match = by_name[candidate.image]
                 if match.stamp_ns < query.stamp_ns:  # each loop once, from its later image
-                    yield (index, query, match, float(candidate.score),
-                           cached_matches(cache, query.image_name, match.image_name))
-            yield index, query, None, 0.0, None  # the query is done (progress)
+                    cached = cached_matches(cache, query.image_name, match.image_name)
+                    yield index, query, match, float(candidate.score), cached, cached is None
+            yield index, query, None, 0.0, None, False  # the query is done (progress)
+
+    def pair_of(item):
+        _, query, match, _, matches, _ = item
+        if match is None or matches is not None:
+            return None
+        return features[query.image_name], features[match.image_name]
 
     def verify(item):
-        _, query, match, _, matches = item
+        _, query, match, _, matches, computed = item
         if match is None:
             return None
         f_query, f_match = features[query.image_name], features[match.image_name]
-        computed = matches is None
-        if computed:
+        if matches is None:
             matches = matcher.match(f_query, f_match)
         return computed, matches, verify_pair(f_query, f_match, matches,
                                               keyframes.rig[query.camera_name].camera,
@@ -91,7 +97,9 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
 
     loops, verified = [], 0
     progress = Progress("loops", len(frames), "keyframes")
-    for (_, query, match, score, _), outcome in ordered_map(verify, candidates(), threads):
+    items = with_batched_matches(candidates(), matcher, pair_of,
+                                 lambda item, matches: (*item[:4], matches, True))
+    for (_, query, match, score, *_), outcome in ordered_map(verify, items, threads):
         if match is None:
             progress.step(note=f"{len(loops)} loops")
             continue

@@ -18,7 +18,7 @@ from cusfm_ros.core.relpose.two_view import essential_inliers
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.pairs_file import read_pairs
-from cusfm_ros.pipeline.components import LazyMatcher
+from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.parallel import ordered_map
@@ -72,12 +72,12 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
                 near = {n for pair in todo[index:index + 256] for n in pair}
                 for name in [n for n in loaded if n not in near]:
                     del loaded[name]
-            yield a, b, load(a), load(b), cached_matches(cache, a, b)
+            raw = cached_matches(cache, a, b)
+            yield a, b, load(a), load(b), raw, raw is None
 
     def match_and_verify(item):
-        a, b, features_a, features_b, raw = item
-        computed = raw is None
-        if computed:
+        a, b, features_a, features_b, raw, computed = item
+        if raw is None:
             raw = matcher.match(features_a, features_b)
         kept = raw
         if options.verify and len(raw):
@@ -87,7 +87,10 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
             kept = Matches(raw.indices[mask], raw.confidences[mask])
         return computed, raw, kept
 
-    for (a, b, *_), (computed, raw, kept) in ordered_map(match_and_verify, inputs(), threads):
+    items = with_batched_matches(inputs(), matcher,
+                                 lambda item: item[2:4] if item[4] is None else None,
+                                 lambda item, raw: (*item[:4], raw, True))
+    for (a, b, *_), (computed, raw, kept) in ordered_map(match_and_verify, items, threads):
         matched += computed
         if computed:
             remember_matches(cache, a, b, raw)
