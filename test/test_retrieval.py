@@ -187,7 +187,7 @@ def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
     from cusfm_ros.sim.generator import SimulationOptions, Simulator
     from cusfm_ros.sim.loop_truth import evaluate_loops
 
-    sim = Simulator(SimulationOptions(scene="indoor", rig="stereo", frames=120, loops=2,
+    sim = Simulator(SimulationOptions(scene="indoor", rig="stereo", frames=90, loops=2,
                                       image_width=320, image_height=240,
                                       odom_yaw_drift_deg_per_m=0.3, odom_scale_error=0.02)
                     ).generate(tmp_path / "sim")
@@ -195,7 +195,7 @@ def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
     # adaptive LightGlue (early exit, point pruning) end to end: most loop candidates do not
     # overlap, and it prunes their points after the first layers
     args = ["map", str(sim / "bag"), "--out", str(run), "--min-translation-m", "0.3",
-            "--max-keypoints", "1024", "--rgb", "--matcher-depth-confidence", "0.95",
+            "--max-keypoints", "768", "--rgb", "--matcher-depth-confidence", "0.95",
             "--matcher-width-confidence", "0.99"]
     assert main(args) == 0
     report = json.loads((run / "report.json").read_text())
@@ -223,7 +223,7 @@ def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
                             "observations", "seconds_per_stage"}
     assert report["versions"]["gtsam"] and report["options"]["frame_type"] == "rig"
     model = pycolmap.Reconstruction(str(run / "sparse"))
-    assert model.num_points3D() == summary["points"] and model.num_images() == 240
+    assert model.num_points3D() == summary["points"] and model.num_images() == 180
     assert model.compute_num_observations() == summary["observations"]
     points, rgb = read_ply(run / "points.ply")
     assert len(points) == summary["points"] and rgb is not None and rgb.mean() > 10
