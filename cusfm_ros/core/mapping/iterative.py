@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from cusfm_ros.core.index_ranges import concatenated_ranges
 from cusfm_ros.core.mapping.bundle_adjustment import (BundleAdjuster, BundleOptions,
                                                       BundleProblem, BundleResult,
                                                       RelativeFactors)
@@ -197,9 +198,7 @@ class IterativeMapper:
         if len(tracks) == 0:
             return 0
         lengths = np.diff(data.offsets)[tracks]
-        # every observation of the tracks, in track order (one index, not an arange per track)
-        obs = (np.repeat(data.offsets[tracks] - np.r_[0, np.cumsum(lengths)[:-1]], lengths)
-               + np.arange(int(lengths.sum())))
+        obs = concatenated_ranges(data.offsets[tracks], lengths)  # in track order
         sub = replace(data, obs_image=data.obs_image[obs], obs_xy=data.obs_xy[obs],
                       obs_per_px=data.obs_per_px[obs],
                       offsets=np.r_[0, np.cumsum(lengths)],

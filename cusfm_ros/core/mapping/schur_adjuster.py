@@ -24,6 +24,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from cusfm_ros.core.index_ranges import concatenated_ranges
 from cusfm_ros.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -156,9 +157,7 @@ class _Pairs:
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         n = counts[obs_point[order]]
         first = np.repeat(order, n)
-        base = np.repeat(starts[obs_point[order]], n)
-        within = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
-        second = order[base + within]
+        second = order[concatenated_ranges(starts[obs_point[order]], n)]
         self.first = torch.as_tensor(first, device=device)
         self.second = torch.as_tensor(second, device=device)
         self.block = torch.as_tensor(obs_camera[first] * num_cameras + obs_camera[second],

@@ -16,10 +16,11 @@ sums use ``np.add.reduceat``), in chunks bounding memory. Written here because O
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import combinations
+from itertools import combinations, islice
 
 import numpy as np
 
+from cusfm_ros.core.index_ranges import concatenated_ranges
 from cusfm_ros.errors import ConfigError
 
 
@@ -137,7 +138,7 @@ def _refit(cam_from_world, xy, weights, starts, origin, method) -> np.ndarray:
 
 
 def _pair_table(length: int, max_pairs: int) -> np.ndarray:
-    return np.array(list(combinations(range(length), 2))[:max_pairs], dtype=np.int64)
+    return np.array(list(islice(combinations(range(length), 2), max_pairs)), dtype=np.int64)
 
 
 def _best_of(cam_from_world, xy, offsets, tracks, tables, options, max_error, best
@@ -164,8 +165,7 @@ def _best_of(cam_from_world, xy, offsets, tracks, tables, options, max_error, be
         # evaluate every proposal on every observation of its track
         obs_len = lengths[track_of]
         prop_of = np.repeat(np.arange(len(track_of)), obs_len)
-        within = np.arange(len(prop_of)) - np.repeat(np.cumsum(obs_len) - obs_len, obs_len)
-        obs = offsets[track_of][prop_of] + within
+        obs = concatenated_ranges(offsets[track_of], obs_len)
         error, depth = _residuals(points[prop_of], cam_from_world[obs], xy[obs])
         inlier = (error < max_error[obs]) & (depth > 0)
         count = np.add.reduceat(inlier.astype(np.int64), np.cumsum(obs_len) - obs_len)
