@@ -417,6 +417,23 @@ def _batched_lightglue_equals_one_pair_at_a_time(device, motorcycle):
         np.testing.assert_allclose(ours.confidences, theirs.confidences, atol=1e-4)
     with pytest.raises(ConfigError, match="batch_pairs >= 1"):
         LightGlueOptions(batch_pairs=0)
+    # a batch the device cannot hold is halved until it fits; one pair that does not is an error
+    real, sizes = matcher._match_padded, []
+
+    def tight(chunk, limit=1):
+        sizes.append(len(chunk))
+        if len(chunk) > limit:
+            raise torch.OutOfMemoryError("test: out of memory")
+        return real(chunk)
+
+    matcher._match_padded = tight
+    halved = matcher.match_many(pairs)
+    assert sizes == [3, 1, 2, 1, 1, 1]  # pairs 0-2: 3 -> 1 + 2 -> 1 + 1; pair 4 alone
+    for ours, theirs in zip(halved, batched):
+        np.testing.assert_array_equal(ours.indices, theirs.indices)
+    matcher._match_padded = lambda chunk: tight(chunk, limit=0)
+    with pytest.raises(torch.OutOfMemoryError):
+        matcher.match_many(pairs[:1])
 
 
 def test_batched_lightglue_equals_one_pair_at_a_time_on_cpu(motorcycle):

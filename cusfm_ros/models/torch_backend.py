@@ -7,6 +7,8 @@ provider).
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from cusfm_ros.core.features.aliked import MIN_IMAGE_PX, AlikedOptions
@@ -23,6 +25,8 @@ from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
 from cusfm_ros.models.nets.aliked import detect_keypoints
 from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
 from cusfm_ros.models.nets.xfeat import detect_and_describe
+
+logger = logging.getLogger(__name__)
 
 
 def _device(name: str):
@@ -197,9 +201,25 @@ class TorchLightGlueMatcher:
             return results
         for start in range(0, len(todo), self.batch_pairs):
             chunk = todo[start:start + self.batch_pairs]
-            for index, matches in zip(chunk, self._match_padded([pairs[i] for i in chunk])):
+            for index, matches in zip(chunk, self._match_halving([pairs[i] for i in chunk])):
                 results[index] = matches
         return results
+
+    def _match_halving(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
+        """``_match_padded``, halving the batch while the device runs out of memory (its
+        attention takes batch x 4 heads x M x N floats: ~1 GB per tensor for 16 pairs of 2048
+        points, 16x that at 8192); one pair that does not fit is the error it is."""
+        try:
+            return self._match_padded(pairs)
+        except self.torch.OutOfMemoryError:
+            if len(pairs) == 1:
+                raise
+        if self.device.type == "cuda":
+            self.torch.cuda.empty_cache()
+        half = len(pairs) // 2
+        logger.info("LightGlue: %d pairs at once do not fit on %s; %d at a time", len(pairs),
+                    self.device, half)
+        return self._match_halving(pairs[:half]) + self._match_halving(pairs[half:])
 
     def _match_padded(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
         """One pass over pairs padded to the largest side of each image, masks marking the
