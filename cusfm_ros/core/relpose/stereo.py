@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from cusfm_ros.core.geometry import Rigid3, skew
 from cusfm_ros.core.relpose.two_view import TwoViewOptions, estimate_two_view
@@ -105,7 +106,11 @@ def stereo_relative_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.n
         lr = left_from_right.matrix()
 
         def residuals(x):
-            pose = Rigid3.from_rotvec(x[:3], x[3:]).matrix()
+            # the 4x4 directly, not through Rigid3: its checks cost 130 us a call, a third of
+            # the refinement (~60 calls per loop for the numerical Jacobian)
+            pose = np.eye(4)
+            pose[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+            pose[:3, 3] = x[3:]
             return np.r_[_sampson(pose, l_pts, lm_pts), _sampson(pose @ lr, r_pts, rm_pts)]
 
         scale = options.ransac_threshold
