@@ -13,9 +13,9 @@ mkdir -p .whl/wheels .whl/weights
 platforms=()
 for p in manylinux_2_28_x86_64 manylinux_2_27_x86_64 manylinux_2_17_x86_64 \
          manylinux2014_x86_64 manylinux1_x86_64; do platforms+=(--platform "$p"); done
-for req in gtsam==4.3.0 rosbags==0.11.9 mcap==1.6.0 mcap-ros2-support==0.6.0 \
-           array-api-compat==1.16.0 lz4 zstandard ruamel.yaml ruamel.yaml.clib apsw \
-           backports.zstd; do
+# our pins from requirements.txt; their own needs (unpinned there too) after them
+pins=$(grep -E '^(gtsam|rosbags|mcap|mcap-ros2-support|array-api-compat)==' requirements.txt)
+for req in $pins lz4 zstandard ruamel.yaml ruamel.yaml.clib apsw backports.zstd; do
   python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
     --implementation cp "${platforms[@]}" -d .whl/wheels "$req"
 done

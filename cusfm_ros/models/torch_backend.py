@@ -183,10 +183,12 @@ class TorchLightGlueMatcher:
 
     @property
     def batch_pairs(self) -> int:
-        return 1 if self.options.adaptive else self.options.batch_pairs
+        return self.options.pairs_per_pass
 
     def match_many(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
         """``match`` of each pair, ``batch_pairs`` pairs per pass over the network."""
+        if self.batch_pairs == 1:
+            return [self.match(*pair) for pair in pairs]
         results: list[Matches | None] = [None] * len(pairs)
         todo = []
         for index, (features0, features1) in enumerate(pairs):
@@ -195,10 +197,6 @@ class TorchLightGlueMatcher:
                 results[index] = Matches.empty()
             else:
                 todo.append(index)
-        if self.batch_pairs == 1:
-            for index in todo:
-                results[index] = self.match(*pairs[index])
-            return results
         for start in range(0, len(todo), self.batch_pairs):
             chunk = todo[start:start + self.batch_pairs]
             for index, matches in zip(chunk, self._match_halving([pairs[i] for i in chunk])):

@@ -175,7 +175,7 @@ class LazyMatcher:
         matcher = self.options.matcher
         if matcher.name == "knn" or not self.options.use_torch(self.device):
             return 1
-        return 1 if matcher.selected.adaptive else matcher.selected.batch_pairs
+        return matcher.selected.pairs_per_pass
 
     def match_many(self, pairs):
         return self._built().match_many(pairs)

@@ -51,6 +51,12 @@ class LightGlueOptions:
     def adaptive(self) -> bool:
         return self.depth_confidence > 0 or self.width_confidence > 0
 
+    @property
+    def pairs_per_pass(self) -> int:
+        """``batch_pairs`` for the torch backend's batched path; 1 for an adaptive run (its
+        early exit and pruning are decided per pair)."""
+        return 1 if self.adaptive else self.batch_pairs
+
 
 def normalize_keypoints(keypoints_px: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     size = np.asarray(image_size, np.float32)
