@@ -4,6 +4,7 @@ every camera model, extrinsic refinement, outliers, rolling shutter, and bad inp
 import numpy as np
 import pytest
 from test_cameras import CAMERAS
+from test_retrieval import arrays_of
 
 from cusfm_ros.core.geometry import Rigid3, invert_matrices, se3_exp
 from cusfm_ros.core.mapping.bundle_adjustment import BundleOptions, RelativeFactors
@@ -234,6 +235,34 @@ def test_a_track_whose_first_pair_holds_an_outlier_still_finds_its_point(rng):
     assert np.median(error) < 0.05
     others = np.setdiff1d(np.nonzero(clean.valid)[0], long_enough)
     np.testing.assert_array_equal(result.points[others], clean.points[others])
+
+
+@pytest.mark.parametrize("kind", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_triangulation_on_torch_equals_numpy_in_any_chunk_size(rng, kind):
+    """The GPU path's code (torch; CPU tensors in CI) finds the same points and inliers as
+    numpy, with outliers, spoiled first pairs, both methods, and chunks of every size."""
+    arrays = arrays_of(kind)
+    camera = CAMERAS["opencv"]
+    truth, data = scene(rng, camera, noise_px=0.5, num_points=300, outlier_fraction=0.05)
+    node, sensor = data["image_node"][data["image"]], data["image_sensor"][data["image"]]
+    cam_from_world = invert_matrices(truth["world_from_rig"][node] @
+                                     truth["rig_from_cam"][sensor])
+    offsets, xy = data["offsets"], data["xy"].copy()
+    xy[offsets[np.nonzero(np.diff(offsets) >= 4)[0][::2]]] += 0.05  # first pairs spoiled
+    max_error = rng.uniform(2.0, 4.0, len(xy)) / camera.focal_px
+    for method in ("dlt", "midpoint"):
+        reference = triangulate_tracks(cam_from_world, xy, offsets,
+                                       TriangulationOptions(method=method), max_error)
+        assert 0.8 < reference.valid.mean() < 1.0
+        for chunk in (1_000_000, 97):
+            options = TriangulationOptions(method=method, chunk_evaluations=chunk)
+            for result in (triangulate_tracks(cam_from_world, xy, offsets, options, max_error),
+                           triangulate_tracks(cam_from_world, xy, offsets, options, max_error,
+                                              arrays)):
+                assert isinstance(result.points, np.ndarray)
+                np.testing.assert_array_equal(result.valid, reference.valid)
+                np.testing.assert_array_equal(result.inliers, reference.inliers)
+                np.testing.assert_allclose(result.points, reference.points, rtol=0, atol=1e-9)
 
 
 def test_fixed_nodes_stay_where_they_are_given(rng):

@@ -53,7 +53,7 @@ def test_quantize_in_chunks_and_with_torch_gives_the_same_words(rng, kind):
             node = kids[np.argmin(((tree.centroids[kids] - point) ** 2).sum(1))]
         expected.append(tree.words[node])
     np.testing.assert_array_equal(words, expected)
-    np.testing.assert_array_equal(tree.use_arrays(_arrays(kind)).quantize(points), words)
+    np.testing.assert_array_equal(tree.use_arrays(arrays_of(kind)).quantize(points), words)
 
 
 def test_build_is_seeded_and_deterministic(rng):
@@ -65,7 +65,7 @@ def test_build_is_seeded_and_deterministic(rng):
     assert not np.array_equal(first.quantize(points), other.quantize(points))
 
 
-def _arrays(kind):
+def arrays_of(kind):
     from cusfm_ros.core.accelerator import Arrays
 
     if kind == "numpy":
@@ -90,7 +90,7 @@ def test_kmeans_tree_clusters_every_node_and_caps_the_training_sample(rng, kind)
     points = (centres + 0.005 * rng.normal(size=centres.shape)).astype(np.float32)
     for cap in (4096, 64):  # 64 < 1620 points at the root: trained on a sample
         tree = hierarchical_kmeans(points, np.ones(len(points)), 3, 3, 50, seed=0,
-                                   train_points_per_node=cap, arrays=_arrays(kind))
+                                   train_points_per_node=cap, arrays=arrays_of(kind))
         assert tree.leaf.sum() == 27 and len(tree.centroids) == 1 + 3 + 9 + 27
         vocabulary = VocabularyTree(tree.centroids, tree.children,
                                     np.where(tree.leaf, np.cumsum(tree.leaf) - 1, -1),

@@ -21,6 +21,7 @@ from cusfm_ros.core.mapping.bundle_adjustment import (BundleAdjuster, BundleOpti
                                                       RelativeFactors)
 from cusfm_ros.core.mapping.self_calibration import (SelfCalibrationOptions, apply_offsets,
                                                      estimate_offsets, shared_tracks)
+from cusfm_ros.core.accelerator import Arrays
 from cusfm_ros.core.mapping.triangulation import TriangulationOptions, triangulate_tracks
 from cusfm_ros.errors import ConfigError, MappingError
 
@@ -146,6 +147,7 @@ class IterativeMapper:
         self.options = options
         self.bundle = bundle
         self.device = device
+        self.arrays = Arrays.for_device(device)  # triangulation: numpy, or torch on the GPU
 
     def _problem(self, data: MappingInput, poses: BundleProblem, points: np.ndarray,
                  active: np.ndarray) -> tuple[BundleProblem, np.ndarray]:
@@ -210,7 +212,8 @@ class IterativeMapper:
         options = TriangulationOptions(method=o.triangulation_method,
                                        min_angle_deg=o.min_triangulation_angle_deg)
         result = triangulate_tracks(problem.observation_poses(), sub.obs_xy, sub.offsets,
-                                    options, o.triangulation_max_error_px * sub.obs_per_px)
+                                    options, o.triangulation_max_error_px * sub.obs_per_px,
+                                    self.arrays)
         points[tracks] = result.points
         active[obs] = result.inliers
         return int(result.valid.sum())
@@ -323,7 +326,7 @@ class IterativeMapper:
         the largest applied update in pixels at the image's edge (0 when within the noise)."""
         estimates = estimate_offsets(poses, data.obs_image, data.obs_xy, data.obs_per_px,
                                      data.offsets, active, self.options.self_calibration,
-                                     data.obs_next_node, data.obs_alpha)
+                                     data.obs_next_node, data.obs_alpha, self.arrays)
         step_px = 0.0
         for e in estimates:
             entry = {"camera": e.camera, "offset_px": e.offset_px.tolist(),

@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from cusfm_ros.core.accelerator import Arrays
 from cusfm_ros.core.mapping.bundle_adjustment import BundleProblem
 from cusfm_ros.core.mapping.triangulation import TriangulationOptions, triangulate_tracks
 from cusfm_ros.errors import ConfigError
@@ -108,11 +109,13 @@ def estimate_offsets(poses: BundleProblem, obs_image: np.ndarray, obs_xy: np.nda
                      obs_per_px: np.ndarray, offsets: np.ndarray, active: np.ndarray,
                      options: SelfCalibrationOptions = SelfCalibrationOptions(),
                      obs_next_node: np.ndarray | None = None,
-                     obs_alpha: np.ndarray | None = None) -> list[OffsetEstimate]:
+                     obs_alpha: np.ndarray | None = None, arrays: Arrays = Arrays()
+                     ) -> list[OffsetEstimate]:
     """One estimate per rig camera (sensor) after the first that shares tracks with the
     others. ``poses``: the current node poses and extrinsics; the observations are grouped by
     track (``offsets``) and ``active`` marks the inliers to use; ``obs_next_node`` and
-    ``obs_alpha``: the rolling-shutter interpolation of each observation, if any."""
+    ``obs_alpha``: the rolling-shutter interpolation of each observation, if any; ``arrays``:
+    where the triangulation runs."""
     sensor_of_obs = poses.image_sensor[obs_image]
     num_tracks = len(offsets) - 1
     track_of_obs = np.repeat(np.arange(num_tracks), np.diff(offsets))
@@ -131,7 +134,7 @@ def estimate_offsets(poses: BundleProblem, obs_image: np.ndarray, obs_xy: np.nda
         result = triangulate_tracks(
             cam_from_world[order], obs_xy[order], np.r_[0, np.cumsum(lengths)],
             TriangulationOptions(min_angle_deg=options.min_angle_deg),
-            options.max_error_px * obs_per_px[order])
+            options.max_error_px * obs_per_px[order], arrays)
         point_of_track = np.full((num_tracks, 3), np.nan)
         point_of_track[np.nonzero(shared)[0]] = result.points
         sel = mine & np.isfinite(point_of_track[track_of_obs, 0])

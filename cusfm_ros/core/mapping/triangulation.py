@@ -8,8 +8,11 @@ and in front of their cameras wins and is re-estimated from all its inliers. Acc
 must lie in front of every inlier camera (cheirality), subtend a minimum triangulation angle
 and reproject within the threshold.
 
-Every track is processed at once with numpy (proposals of all tracks are stacked; per-track
-sums use ``np.add.reduceat``), in chunks bounding memory. Written here because OpenCV's
+Every track is processed at once (proposals of all tracks are stacked; per-track sums are
+segment reductions), in chunks bounding memory. The arithmetic is written against the array
+API standard (``array-api-compat``): numpy on the CPU path, torch tensors on a CUDA GPU
+(``accelerator.Arrays``), one code for both; the index bookkeeping (which observation pairs
+each track tries, the chunks) stays numpy on the host. Written here because OpenCV's
 ``triangulatePoints`` is two-view only and pycolmap's estimator runs one track per call.
 """
 
@@ -19,8 +22,11 @@ from dataclasses import dataclass
 from itertools import combinations, islice
 
 import numpy as np
+from array_api_compat import array_namespace
+from array_api_compat import device as device_of
 
-from cusfm_ros.core.index_ranges import concatenated_ranges
+from cusfm_ros.core.accelerator import Arrays
+from cusfm_ros.core.index_ranges import concatenated_ranges, segment_reduce
 from cusfm_ros.errors import ConfigError
 
 
@@ -54,100 +60,124 @@ class TriangulationResult:
     """(M,) observation is an inlier of its (valid) track."""
 
 
-def _dlt_rows(cam_from_world: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def _mat_vec(matrices, vectors):
+    """(..., I, J) @ (..., J) -> (..., I)."""
+    return (matrices @ vectors[..., None])[..., 0]
+
+
+def _recentred(xp, cam_from_world, origin):
+    """(..., 3, 4) projections of the cameras with the world origin moved to ``origin``."""
+    rotation = cam_from_world[..., :3, :3]
+    translation = cam_from_world[..., :3, 3] + _mat_vec(rotation, origin)
+    return xp.concat([rotation, translation[..., None]], axis=-1)
+
+
+def _dlt_rows(xp, projection, xy):
     """(..., 2, 4) DLT rows x * P3 - P1, y * P3 - P2 of each observation."""
-    p = cam_from_world[..., :3, :]
-    return np.stack([xy[..., :1] * p[..., 2, :] - p[..., 0, :],
-                     xy[..., 1:] * p[..., 2, :] - p[..., 1, :]], axis=-2)
+    return xp.stack([xy[..., :1] * projection[..., 2, :] - projection[..., 0, :],
+                     xy[..., 1:] * projection[..., 2, :] - projection[..., 1, :]], axis=-2)
 
 
-def _dehomogenize(points_h: np.ndarray) -> np.ndarray:
+def _null_vector_point(xp, normal):
+    """The point of the smallest eigenvector of each (..., 4, 4) DLT normal matrix."""
+    points_h = xp.linalg.eigh(normal).eigenvectors[..., :, 0]
     w = points_h[..., 3:]
-    ok = np.abs(w) > 1e-12
-    return np.where(ok, points_h[..., :3] / np.where(ok, w, 1.0), np.nan)
+    ok = xp.abs(w) > 1e-12
+    return xp.where(ok, points_h[..., :3] / xp.where(ok, w, 1.0), xp.nan)
 
 
-def _rays(cam_from_world: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _rays(xp, cam_from_world, xy):
     """Camera centres (..., 3) and unit world ray directions (..., 3)."""
-    rot = cam_from_world[..., :3, :3]
-    centres = -np.einsum("...ji,...j->...i", rot, cam_from_world[..., :3, 3])
-    bearing = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
-    rays = np.einsum("...ji,...j->...i", rot, bearing)
-    return centres, rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    world_from_cam = xp.matrix_transpose(cam_from_world[..., :3, :3])
+    centres = -_mat_vec(world_from_cam, cam_from_world[..., :3, 3])
+    rays = _mat_vec(world_from_cam, xp.concat([xy, xp.ones_like(xy[..., :1])], axis=-1))
+    return centres, rays / xp.linalg.vector_norm(rays, axis=-1, keepdims=True)
 
 
-def _two_view(cam_from_world: np.ndarray, xy: np.ndarray, method: str) -> np.ndarray:
+def _two_view(xp, cam_from_world, xy, method: str):
     """Points (P, 3) from pairs: poses (P, 2, 4, 4), observations (P, 2, 2)."""
     if method == "dlt":
         # recentred on the first camera so that the 4x4 normal matrix is well conditioned
-        origin = _rays(cam_from_world[:, 0], xy[:, 0])[0]
-        shifted = cam_from_world.copy()
-        shifted[..., :3, 3] += np.einsum("pkij,pj->pki", cam_from_world[..., :3, :3], origin)
-        rows = _dlt_rows(shifted, xy).reshape(-1, 4, 4)
-        normal = np.einsum("pki,pkj->pij", rows, rows)
-        return _dehomogenize(np.linalg.eigh(normal)[1][:, :, 0]) + origin
-    centres, rays = _rays(cam_from_world, xy)
+        origin = _rays(xp, cam_from_world[:, 0], xy[:, 0])[0]
+        rows = xp.reshape(_dlt_rows(xp, _recentred(xp, cam_from_world, origin[:, None]), xy),
+                          (-1, 4, 4))
+        return _null_vector_point(xp, xp.matrix_transpose(rows) @ rows) + origin
+    centres, rays = _rays(xp, cam_from_world, xy)
     # closest points of two lines c0 + s r0, c1 + t r1
     d = centres[:, 1] - centres[:, 0]
-    b = np.sum(rays[:, 0] * rays[:, 1], axis=1)
-    e, f = np.sum(rays[:, 0] * d, axis=1), np.sum(rays[:, 1] * d, axis=1)
+    b = xp.sum(rays[:, 0] * rays[:, 1], axis=1)
+    e, f = xp.sum(rays[:, 0] * d, axis=1), xp.sum(rays[:, 1] * d, axis=1)
     denom = 1.0 - b**2
     ok = denom > 1e-12
-    denom = np.where(ok, denom, 1.0)
+    denom = xp.where(ok, denom, 1.0)
     s, t = (e - b * f) / denom, (b * e - f) / denom
     mid = 0.5 * (centres[:, 0] + s[:, None] * rays[:, 0] + centres[:, 1] + t[:, None] * rays[:, 1])
-    return np.where(ok[:, None], mid, np.nan)
+    return xp.where(ok[:, None], mid, xp.nan)
 
 
-def _residuals(points: np.ndarray, cam_from_world: np.ndarray, xy: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _residuals(xp, points, cam_from_world, xy):
     """Normalized reprojection error and depth of ``points[i]`` seen by observation ``i``."""
-    p = np.einsum("nij,nj->ni", cam_from_world[:, :3, :3], points) + cam_from_world[:, :3, 3]
+    p = _mat_vec(cam_from_world[:, :3, :3], points) + cam_from_world[:, :3, 3]
     depth = p[:, 2]
-    safe = np.where(np.abs(depth) > 1e-12, depth, 1e-12)
-    error = np.linalg.norm(p[:, :2] / safe[:, None] - xy, axis=1)
-    return np.where(np.isfinite(error), error, np.inf), depth
+    safe = xp.where(xp.abs(depth) > 1e-12, depth, 1e-12)
+    error = xp.linalg.vector_norm(p[:, :2] / safe[:, None] - xy, axis=1)
+    return xp.where(xp.isfinite(error), error, xp.inf), depth
 
 
-def _refit(cam_from_world, xy, weights, starts, origin, method) -> np.ndarray:
-    """Points of every track from its weighted observations (sums per track via reduceat).
+def _refit(xp, cam_from_world, xy, weights, starts, track_of_obs, origin, method):
+    """Points of every track from its weighted observations (per-track sums).
 
     ``origin`` (T, 3) recentres each track (a camera centre of it) so that the DLT normal
     matrix stays well conditioned far from the world origin."""
-    lengths = np.diff(np.r_[starts, len(xy)])
-    shift = np.repeat(origin, lengths, axis=0)
+    shift = origin[track_of_obs]
     if method == "dlt":
-        shifted = cam_from_world.copy()
-        shifted[:, :3, 3] += np.einsum("nij,nj->ni", cam_from_world[:, :3, :3], shift)
-        rows = _dlt_rows(shifted, xy)  # (M, 2, 4)
-        normal = np.einsum("nki,nkj->nij", rows, rows) * weights[:, None, None]
-        normal = np.add.reduceat(normal, starts, axis=0)
-        points = _dehomogenize(np.linalg.eigh(normal)[1][:, :, 0])
+        rows = _dlt_rows(xp, _recentred(xp, cam_from_world, shift), xy)  # (M, 2, 4)
+        normal = (xp.matrix_transpose(rows) @ rows) * weights[:, None, None]
+        points = _null_vector_point(xp, segment_reduce(normal, starts, track_of_obs, "sum"))
     else:
-        centres, rays = _rays(cam_from_world, xy)
-        projectors = (np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]) * weights[:, None,
-                                                                                      None]
-        lhs = np.add.reduceat(projectors, starts, axis=0)
-        rhs = np.add.reduceat(np.einsum("nij,nj->ni", projectors, centres - shift), starts,
-                              axis=0)
-        ok = np.abs(np.linalg.det(lhs)) > 1e-18
-        lhs[~ok] = np.eye(3)
-        points = np.linalg.solve(lhs, rhs[..., None])[..., 0]
-        points[~ok] = np.nan
+        centres, rays = _rays(xp, cam_from_world, xy)
+        eye = xp.eye(3, dtype=xy.dtype, device=device_of(xy))
+        projectors = (eye - rays[:, :, None] * rays[:, None, :]) * weights[:, None, None]
+        lhs = segment_reduce(projectors, starts, track_of_obs, "sum")
+        rhs = segment_reduce(_mat_vec(projectors, centres - shift), starts, track_of_obs,
+                             "sum")
+        ok = xp.abs(xp.linalg.det(lhs)) > 1e-18
+        lhs = xp.where(ok[:, None, None], lhs, eye)
+        points = xp.where(ok[:, None], xp.linalg.solve(lhs, rhs[..., None])[..., 0], xp.nan)
     return points + origin
 
 
-def _pair_table(length: int, max_pairs: int) -> np.ndarray:
-    return np.array(list(islice(combinations(range(length), 2), max_pairs)), dtype=np.int64)
+@dataclass(frozen=True)
+class _PairTables:
+    """The observation pairs a track of each length tries: ``pairs[n, :count[n]]``."""
+
+    pairs: np.ndarray
+    """(L + 1, max_pairs, 2) local observation indices."""
+    count: np.ndarray
+    """(L + 1,)"""
+
+    @classmethod
+    def build(cls, lengths: np.ndarray, max_pairs: int) -> _PairTables:
+        longest = int(lengths.max())
+        pairs = np.zeros((longest + 1, max_pairs, 2), np.int64)
+        count = np.zeros(longest + 1, np.int64)
+        for n in np.unique(lengths).tolist():
+            table = list(islice(combinations(range(n), 2), max_pairs))
+            pairs[n, :len(table)] = table
+            count[n] = len(table)
+        return cls(pairs, count)
+
+    def first(self) -> _PairTables:
+        return _PairTables(self.pairs[:, :1], np.minimum(self.count, 1))
 
 
-def _best_of(cam_from_world, xy, offsets, tracks, tables, options, max_error, best
-             ) -> np.ndarray:
-    """Evaluate the pairs ``tables[length]`` of each of ``tracks`` on all of its observations
-    and write each track's winner (most inliers, the first pair on a tie; NaN if fewer than
-    two) into ``best``; returns (len(tracks),) the winners' inlier counts."""
+def _best_of(xp, arrays, cam_from_world, xy, offsets, tracks, tables, options, max_error,
+             best) -> np.ndarray:
+    """Evaluate the pairs ``tables`` give each of ``tracks`` on all of its observations and
+    write each track's winner (most inliers, the first pair on a tie; NaN if fewer than two)
+    into ``best``; returns (len(tracks),) the winners' inlier counts."""
     lengths = np.diff(offsets)
-    pairs_per_track = np.array([len(tables[int(n)]) for n in lengths[tracks]], dtype=np.int64)
+    pairs_per_track = tables.count[lengths[tracks]]
     work = pairs_per_track * lengths[tracks]
     winners = np.full(len(tracks), -1, np.int64)
     # chunks of consecutive tracks with bounded proposal x observation work
@@ -155,30 +185,33 @@ def _best_of(cam_from_world, xy, offsets, tracks, tables, options, max_error, be
                              side="right")
     bounds = np.unique(np.r_[0, bounds, len(tracks)])
     for lo, hi in zip(bounds[:-1], bounds[1:]):  # unique bounds: never empty
-        chunk = tracks[lo:hi]
-        # proposals: (track, obs a, obs b) as absolute observation indices
-        track_of = np.repeat(chunk, pairs_per_track[lo:hi])
-        row_of = np.repeat(np.arange(lo, hi), pairs_per_track[lo:hi])
-        local = np.concatenate([tables[int(lengths[t])] for t in chunk])
-        pair_obs = local + offsets[track_of][:, None]
-        points = _two_view(cam_from_world[pair_obs], xy[pair_obs], options.method)
+        chunk, count_of = tracks[lo:hi], pairs_per_track[lo:hi]
+        # proposals: (track, its rank-th pair) as absolute observation indices
+        track_of = np.repeat(chunk, count_of)
+        rank = concatenated_ranges(np.zeros_like(count_of), count_of)
+        pair_obs = arrays.put(tables.pairs[lengths[track_of], rank]
+                              + offsets[track_of][:, None])
+        points = _two_view(xp, cam_from_world[pair_obs], xy[pair_obs], options.method)
         # evaluate every proposal on every observation of its track
         obs_len = lengths[track_of]
-        prop_of = np.repeat(np.arange(len(track_of)), obs_len)
-        obs = concatenated_ranges(offsets[track_of], obs_len)
-        error, depth = _residuals(points[prop_of], cam_from_world[obs], xy[obs])
-        inlier = (error < max_error[obs]) & (depth > 0)
-        count = np.add.reduceat(inlier.astype(np.int64), np.cumsum(obs_len) - obs_len)
-        count[~np.all(np.isfinite(points), axis=1)] = -1
-        order = np.lexsort((-count, track_of))  # per track, most inliers first (stable)
-        head = np.r_[True, track_of[order][1:] != track_of[order][:-1]]
-        chosen = order[head]
-        best[track_of[chosen]] = np.where((count[chosen] >= 2)[:, None], points[chosen], np.nan)
-        winners[row_of[chosen]] = count[chosen]
+        obs = arrays.put(concatenated_ranges(offsets[track_of], obs_len))
+        prop_of = arrays.put(np.repeat(np.arange(len(track_of)), obs_len))
+        error, depth = _residuals(xp, points[prop_of], cam_from_world[obs], xy[obs])
+        inlier = xp.astype((error < max_error[obs]) & (depth > 0), xp.int64)
+        count = segment_reduce(inlier, np.cumsum(obs_len) - obs_len, prop_of, "sum")
+        count = xp.where(xp.all(xp.isfinite(points), axis=1), count, -1)
+        # per track, most inliers first and then the first pair: one key, unique per track
+        key = count * (options.max_pairs + 1) - arrays.put(rank)
+        row_of = arrays.put(np.repeat(np.arange(hi - lo), count_of))
+        top = segment_reduce(key, np.cumsum(count_of) - count_of, row_of, "max")
+        chosen = xp.nonzero(key == top[row_of])[0]  # one per track, in track order
+        best[arrays.put(chunk)] = xp.where((count[chosen] >= 2)[:, None], points[chosen],
+                                           xp.nan)
+        winners[lo:hi] = arrays.get(count[chosen])
     return winners
 
 
-def _best_proposals(cam_from_world, xy, offsets, options, max_error) -> np.ndarray:
+def _best_proposals(xp, arrays, cam_from_world, xy, offsets, options, max_error):
     """(T, 3) best RANSAC proposal per track (NaN where none is finite).
 
     First every track's first pair alone: a track whose observations all agree with it is
@@ -186,19 +219,20 @@ def _best_proposals(cam_from_world, xy, offsets, options, max_error) -> np.ndarr
     winner as trying them all, at a fraction of the work: most tracks of verified matches
     hold no outlier). The other tracks try up to ``max_pairs`` pairs."""
     lengths = np.diff(offsets)
-    best = np.full((len(lengths), 3), np.nan)
-    tables = {int(n): _pair_table(int(n), options.max_pairs) for n in np.unique(lengths)}
+    best = xp.full((len(lengths), 3), xp.nan, dtype=xp.float64, device=device_of(xy))
+    tables = _PairTables.build(lengths, options.max_pairs)
     every = np.arange(len(lengths))
-    count = _best_of(cam_from_world, xy, offsets, every,
-                     {n: table[:1] for n, table in tables.items()}, options, max_error, best)
+    count = _best_of(xp, arrays, cam_from_world, xy, offsets, every, tables.first(), options,
+                     max_error, best)
     rest = every[count < lengths]  # the second pass overwrites their first-pair points
-    _best_of(cam_from_world, xy, offsets, rest, tables, options, max_error, best)
+    _best_of(xp, arrays, cam_from_world, xy, offsets, rest, tables, options, max_error, best)
     return best
 
 
 def triangulate_tracks(cam_from_world: np.ndarray, xy: np.ndarray, offsets: np.ndarray,
                        options: TriangulationOptions = TriangulationOptions(),
-                       max_error: np.ndarray | None = None) -> TriangulationResult:
+                       max_error: np.ndarray | None = None,
+                       arrays: Arrays = Arrays()) -> TriangulationResult:
     """Triangulate every track at once.
 
     Args:
@@ -208,9 +242,8 @@ def triangulate_tracks(cam_from_world: np.ndarray, xy: np.ndarray, offsets: np.n
         offsets: (T + 1,) track t owns observations offsets[t]:offsets[t + 1].
         max_error: (M,) per-observation threshold (normalized units) replacing
             ``options.max_error`` (a pixel threshold varies across wide-angle images).
+        arrays: where the arithmetic runs (numpy, or torch on a GPU); the result is numpy.
     """
-    cam_from_world = np.asarray(cam_from_world, np.float64)
-    xy = np.asarray(xy, np.float64)
     offsets = np.asarray(offsets, np.int64)
     num_tracks = len(offsets) - 1
     lengths = np.diff(offsets)
@@ -220,35 +253,39 @@ def triangulate_tracks(cam_from_world: np.ndarray, xy: np.ndarray, offsets: np.n
         raise ConfigError("triangulate_tracks: every track needs at least two observations")
     max_error = (np.full(len(xy), options.max_error) if max_error is None
                  else np.asarray(max_error, np.float64))
+    cam_from_world = arrays.put(np.asarray(cam_from_world, np.float64))
+    xy, max_error = arrays.put(np.asarray(xy, np.float64)), arrays.put(max_error)
+    xp = array_namespace(xy)
     starts = offsets[:-1]
-    track_of_obs = np.repeat(np.arange(num_tracks), lengths)
-    origin = _rays(cam_from_world[starts], xy[starts])[0]
-    inliers = np.zeros(len(xy), bool)
-    points = _best_proposals(cam_from_world, xy, offsets, options, max_error)
+    track_of_obs = arrays.put(np.repeat(np.arange(num_tracks), lengths))
+    first = arrays.put(starts)
+    origin = _rays(xp, cam_from_world[first], xy[first])[0]
+    points = _best_proposals(xp, arrays, cam_from_world, xy, offsets, options, max_error)
     for _ in range(2):  # refit from the inliers, then once more from the refit's inliers
-        error, depth = _residuals(points[track_of_obs], cam_from_world, xy)
+        error, depth = _residuals(xp, points[track_of_obs], cam_from_world, xy)
         inliers = (error < max_error) & (depth > 0)
-        enough = np.add.reduceat(inliers.astype(np.int64), starts) >= 2
-        points = np.where(enough[:, None], _refit(cam_from_world, xy, inliers.astype(float),
-                                                  starts, origin, options.method), np.nan)
-    error, depth = _residuals(points[track_of_obs], cam_from_world, xy)
-    inliers = (error < max_error) & (depth > 0) & np.isfinite(points[track_of_obs, 0])
-    valid = np.add.reduceat(inliers.astype(np.int64), starts) >= 2
+        enough = segment_reduce(xp.astype(inliers, xp.int64), starts, track_of_obs, "sum") >= 2
+        points = xp.where(enough[:, None],
+                          _refit(xp, cam_from_world, xy, xp.astype(inliers, xp.float64),
+                                 starts, track_of_obs, origin, options.method), xp.nan)
+    error, depth = _residuals(xp, points[track_of_obs], cam_from_world, xy)
+    inliers = (error < max_error) & (depth > 0) & xp.isfinite(points[track_of_obs, 0])
+    valid = segment_reduce(xp.astype(inliers, xp.int64), starts, track_of_obs, "sum") >= 2
     # triangulation angle: largest angle between an inlier ray and the track's first inlier ray
     # (a lower bound of the largest pairwise angle, within a factor of two of it)
-    centres, _ = _rays(cam_from_world, xy)
+    centres, _ = _rays(xp, cam_from_world, xy)
     rays = points[track_of_obs] - centres
-    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
-    first_inlier = np.full(num_tracks, -1)
-    idx = np.nonzero(inliers)[0][::-1]
-    first_inlier[track_of_obs[idx]] = idx
-    reference = rays[np.maximum(first_inlier, 0)][track_of_obs]
-    cosine = np.where(inliers, np.sum(rays * reference, axis=1), 1.0)
-    min_cos = np.minimum.reduceat(cosine, starts)
-    valid &= min_cos <= np.cos(np.radians(options.min_angle_deg))
-    inliers &= valid[track_of_obs]
-    points[~valid] = np.nan
-    return TriangulationResult(points, valid, inliers)
+    rays = rays / xp.clip(xp.linalg.vector_norm(rays, axis=1, keepdims=True), min=1e-300)
+    index = xp.arange(rays.shape[0], device=device_of(xy))
+    first_inlier = segment_reduce(xp.where(inliers, index, rays.shape[0] - 1), starts,
+                                  track_of_obs, "min")  # the last row: a track without any
+    reference = rays[first_inlier][track_of_obs]
+    cosine = xp.where(inliers, xp.sum(rays * reference, axis=1), 1.0)
+    min_cos = segment_reduce(cosine, starts, track_of_obs, "min")
+    valid = valid & (min_cos <= np.cos(np.radians(options.min_angle_deg)))
+    inliers = inliers & valid[track_of_obs]
+    points = xp.where(valid[:, None], points, xp.nan)
+    return TriangulationResult(arrays.get(points), arrays.get(valid), arrays.get(inliers))
 
 
 def triangulate_track(cam_from_world: np.ndarray, xy: np.ndarray,
