@@ -3,6 +3,7 @@ every camera model, extrinsic refinement, outliers, rolling shutter, and bad inp
 
 import numpy as np
 import pytest
+from array_api_compat import array_namespace
 from test_cameras import CAMERAS
 from test_retrieval import arrays_of
 
@@ -263,6 +264,21 @@ def test_triangulation_on_torch_equals_numpy_in_any_chunk_size(rng, kind):
                 np.testing.assert_array_equal(result.valid, reference.valid)
                 np.testing.assert_array_equal(result.inliers, reference.inliers)
                 np.testing.assert_allclose(result.points, reference.points, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_dlt_null_vectors_of_more_matrices_than_one_solver_call_takes(rng, kind):
+    """cuSOLVER's batched eigh fails on ~24k matrices at once: the DLT splits the batch; the
+    points agree with numpy's across the chunk boundaries."""
+    from cusfm_ros.core.mapping import triangulation
+
+    arrays = arrays_of(kind)
+    rows = rng.normal(size=(triangulation.EIGH_BATCH * 2 + 5, 6, 4))
+    normal = np.einsum("nki,nkj->nij", rows, rows)
+    expected = triangulation._null_vector_point(np, normal)
+    got = arrays.get(triangulation._null_vector_point(array_namespace(arrays.put(normal)),
+                                                      arrays.put(normal)))
+    np.testing.assert_allclose(got, expected, rtol=1e-8, atol=1e-8)
 
 
 def test_fixed_nodes_stay_where_they_are_given(rng):

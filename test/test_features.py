@@ -445,3 +445,28 @@ def test_batched_lightglue_equals_one_pair_at_a_time_on_cuda(motorcycle):
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
     _batched_lightglue_equals_one_pair_at_a_time("cuda", motorcycle)
+
+
+def test_torch_aliked_converts_on_the_device_as_prepare_image_does(rng):
+    """The torch extractor converts images on its device; every accepted kind of image gives
+    exactly the network input ``prepare_image`` makes on the CPU, and bad ones its errors."""
+    from cusfm_ros.core.features.types import prepare_image
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor
+
+    extractor = TorchAlikedExtractor.__new__(TorchAlikedExtractor)  # no weights needed
+    extractor.torch, extractor.device = torch, "cpu"
+    images = [rng.integers(0, 256, (40, 50), dtype=np.uint8),
+              rng.integers(0, 256, (40, 50, 1), dtype=np.uint8),
+              rng.integers(0, 256, (40, 50, 4), dtype=np.uint8),
+              rng.integers(0, 65536, (40, 50, 3), dtype=np.uint16),
+              rng.random((40, 50)), rng.random((40, 50, 3)).astype(np.float32)]
+    for image in images:
+        expected = prepare_image(image).transpose(2, 0, 1)[None]
+        got = extractor._network_input(image)
+        assert got.dtype == torch.float32
+        np.testing.assert_array_equal(got.numpy(), expected)
+    extractor.options = AlikedOptions()
+    with pytest.raises(FeatureError, match="unsupported image dtype int32"):
+        extractor.extract(np.zeros((40, 50), np.int32))
+    with pytest.raises(FeatureError, match="finite values in"):
+        extractor.extract(np.full((40, 50), 2.0))

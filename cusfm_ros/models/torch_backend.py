@@ -17,7 +17,7 @@ from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LightGlueOption
                                                LighterGlueMatcher, adaptive_matches,
                                                check_descriptors, filter_matches,
                                                normalize_keypoints)
-from cusfm_ros.core.features.types import Features, FeatureError, Matches, prepare_image
+from cusfm_ros.core.features.types import SCALE, Features, FeatureError, Matches, checked_image
 from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, features_in_image,
                                            network_input, network_mask)
 from cusfm_ros.errors import ConfigError
@@ -54,18 +54,27 @@ class TorchAlikedExtractor:
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
 
+    def _network_input(self, image: np.ndarray):
+        """(1, 3, H, W) float32 RGB in [0, 1] on the device, as ``prepare_image`` makes it,
+        converted there: the image crosses as its own dtype (uint8: a quarter of the bytes),
+        and the CPU thread that feeds the GPU does no per-pixel work."""
+        tensor = self.torch.from_numpy(np.ascontiguousarray(image)).to(self.device)
+        tensor = tensor.float() / SCALE[image.dtype] if image.dtype != np.float32 else tensor
+        if tensor.ndim == 2:
+            tensor = tensor[..., None]
+        return tensor[..., :3].expand(-1, -1, 3).permute(2, 0, 1)[None].contiguous()
+
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
         torch = self.torch
-        rgb = prepare_image(image, MIN_IMAGE_PX)
-        h, w = rgb.shape[:2]
+        image = checked_image(image, MIN_IMAGE_PX)
+        h, w = image.shape[:2]
         if self.options.resize_max_px:
             raise ConfigError("the torch backend does not resize; use the ONNX backend")
         if mask is not None and np.asarray(mask).shape[:2] != (h, w):
             raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image is {(h, w)}")
         o = self.options
         with torch.inference_mode():
-            tensor = torch.from_numpy(rgb.transpose(2, 0, 1)[None]).to(self.device)
-            scores, feature_map = self.model.dense(tensor)
+            scores, feature_map = self.model.dense(self._network_input(image))
             allowed = None if mask is None else torch.from_numpy(
                 np.asarray(mask) > 0).to(self.device)
             # detection stays on the device: the same algorithm as the numpy version
@@ -74,9 +83,11 @@ class TorchAlikedExtractor:
             if len(keypoints) == 0:
                 return Features.empty(self.descriptor_dim, (w, h))
             descriptors = self.model.desc_head(feature_map, keypoints)
-        return Features(keypoints.cpu().numpy().astype(np.float32),
-                        kp_scores.cpu().numpy().astype(np.float32),
-                        descriptors.cpu().numpy().astype(np.float32), (w, h))
+            # one transfer back instead of three
+            packed = torch.cat([keypoints.float(), kp_scores.float()[:, None],
+                                descriptors.float()], dim=1).cpu().numpy()
+        return Features(packed[:, :2].copy(), packed[:, 2].copy(), packed[:, 3:].copy(),
+                        (w, h))
 
 
 class TorchXFeatExtractor:

@@ -48,9 +48,14 @@ class Matches:
         return cls(np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
 
 
-def prepare_image(image: np.ndarray, min_size_px: int = 1) -> np.ndarray:
-    """Image (H, W) or (H, W, 3|4) of uint8, uint16 or float in [0, 1] -> float32 RGB
-    (H, W, 3) in [0, 1]; a clear error for anything else."""
+SCALE = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0,
+         np.dtype(np.float32): 1.0, np.dtype(np.float64): 1.0}
+"""What each image dtype the extractors take is divided by to reach [0, 1]."""
+
+
+def checked_image(image: np.ndarray, min_size_px: int = 1) -> np.ndarray:
+    """The image (H, W) or (H, W, 1|3|4) as an array, once its shape, size and dtype (uint8,
+    uint16, or float in [0, 1]) are checked; a clear error for anything else."""
     image = np.asarray(image)
     if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
         raise FeatureError(f"expected an image of shape (H, W) or (H, W, 3), got {image.shape}")
@@ -60,17 +65,20 @@ def prepare_image(image: np.ndarray, min_size_px: int = 1) -> np.ndarray:
     if h < min_size_px or w < min_size_px:
         raise FeatureError(f"the image is {w}x{h}, smaller than the {min_size_px}x{min_size_px} "
                            "this extractor needs; upscale it or use another extractor")
-    if image.dtype == np.uint8:
-        scaled = image.astype(np.float32) / 255.0
-    elif image.dtype == np.uint16:
-        scaled = image.astype(np.float32) / 65535.0
-    elif image.dtype in (np.float32, np.float64):
-        if not np.all(np.isfinite(image)) or image.min() < 0 or image.max() > 1:
-            raise FeatureError("a float image must hold finite values in [0, 1]")
-        scaled = image.astype(np.float32)
-    else:
+    if image.dtype not in SCALE:
         raise FeatureError(f"unsupported image dtype {image.dtype} (use uint8, uint16 or "
                            "float in [0, 1])")
+    if image.dtype.kind == "f" and (not np.all(np.isfinite(image)) or image.min() < 0
+                                    or image.max() > 1):
+        raise FeatureError("a float image must hold finite values in [0, 1]")
+    return image
+
+
+def prepare_image(image: np.ndarray, min_size_px: int = 1) -> np.ndarray:
+    """Image (H, W) or (H, W, 3|4) of uint8, uint16 or float in [0, 1] -> float32 RGB
+    (H, W, 3) in [0, 1]; a clear error for anything else."""
+    image = checked_image(image, min_size_px)
+    scaled = image.astype(np.float32) / SCALE[image.dtype]
     if scaled.ndim == 2:
         scaled = scaled[..., None]
     if scaled.shape[2] == 1:

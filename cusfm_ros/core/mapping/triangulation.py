@@ -78,9 +78,15 @@ def _dlt_rows(xp, projection, xy):
                      xy[..., 1:] * projection[..., 2, :] - projection[..., 1, :]], axis=-2)
 
 
+EIGH_BATCH = 16384
+"""Matrices per eigen-decomposition call: cuSOLVER's batched eigh (behind torch's) fails on
+large batches (an internal error at ~24k 4x4 matrices on an H200, CUDA 13)."""
+
+
 def _null_vector_point(xp, normal):
-    """The point of the smallest eigenvector of each (..., 4, 4) DLT normal matrix."""
-    points_h = xp.linalg.eigh(normal).eigenvectors[..., :, 0]
+    """The point of the smallest eigenvector of each (N, 4, 4) DLT normal matrix."""
+    points_h = xp.concat([xp.linalg.eigh(normal[i:i + EIGH_BATCH]).eigenvectors[..., :, 0]
+                          for i in range(0, max(normal.shape[0], 1), EIGH_BATCH)], axis=0)
     w = points_h[..., 3:]
     ok = xp.abs(w) > 1e-12
     return xp.where(ok, points_h[..., :3] / xp.where(ok, w, 1.0), xp.nan)
