@@ -241,3 +241,31 @@ def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
                         "camera"]) == 0
     camera_mode = absolute_trajectory_error(truth, read_tum(run / "poses.tum"))
     assert camera_mode.rmse < 0.6 * pgo.rmse, (pgo.rmse, camera_mode.rmse)
+
+
+@pytest.mark.parametrize("kind", ["numpy", "cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_images_quantized_together_get_their_own_words(rng, kind):
+    """quantize_many (one descent for many images), the database's add_many and a streamed
+    set_idf give what one image at a time gives; a wrong dimension is named."""
+    points, _ = clustered(rng, clusters=16, per_cluster=100)
+    tree = VocabularyTree.build(points, SMALL).use_arrays(arrays_of(kind))
+    documents = [points[:300], points[300:300], points[300:1000], points[1000:]]
+    for together, alone in zip(tree.quantize_many(documents), documents):
+        np.testing.assert_array_equal(together, tree.quantize(alone))
+    tree.set_idf(documents)
+    idf = tree.idf.copy()
+    counts = np.zeros(tree.num_words)
+    for d in documents[:1] + documents[2:]:
+        counts[np.unique(tree.quantize(d))] += 1
+    np.testing.assert_allclose(idf, np.log(4 / np.maximum(counts, 1)), rtol=1e-6)
+    tree.set_idf(iter(documents), batch_descriptors=250)  # batches cut between images
+    np.testing.assert_array_equal(tree.idf, idf)
+    one, many = ImageDatabase(tree), ImageDatabase(tree)
+    for i, d in enumerate(documents):
+        one.add(f"{i}", d, i)
+    many.add_many([f"{i}" for i in range(4)], documents, range(4))
+    for i in range(4):
+        assert (one.vector(i) != many.vector(i)).nnz == 0
+    assert many.names == one.names and many.stamps_ns == one.stamps_ns
+    with pytest.raises(VocabularyError, match="dimension 8 but the vocabulary was built for"):
+        tree.quantize_many([points[:3], np.zeros((2, 8), np.float32)])

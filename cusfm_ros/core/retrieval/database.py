@@ -29,22 +29,36 @@ class ImageDatabase:
     _rows: list[sp.csr_matrix] = field(default_factory=list)
     _matrix: sp.csr_matrix | None = None
 
-    def bow(self, descriptors: np.ndarray) -> sp.csr_matrix:
-        """L2-normalized TF-IDF vector (1, W) of an image's descriptors."""
-        words = self.vocabulary.num_words
-        if len(descriptors) == 0:
-            return sp.csr_matrix((1, words), dtype=np.float32)
-        counts = np.bincount(self.vocabulary.quantize(descriptors), minlength=words)
+    def _vector(self, words: np.ndarray) -> sp.csr_matrix:
+        size = self.vocabulary.num_words
+        if len(words) == 0:
+            return sp.csr_matrix((1, size), dtype=np.float32)
+        counts = np.bincount(words, minlength=size)
         vector = counts.astype(np.float32) / counts.sum() * self.vocabulary.idf
         norm = np.linalg.norm(vector)
         return sp.csr_matrix(vector / norm if norm > 0 else vector)
 
+    def bow(self, descriptors: np.ndarray) -> sp.csr_matrix:
+        """L2-normalized TF-IDF vector (1, W) of an image's descriptors."""
+        if len(descriptors) == 0:
+            return self._vector(np.zeros(0, np.int64))
+        return self._vector(self.vocabulary.quantize(descriptors))
+
+    def bows(self, documents: list[np.ndarray]) -> list[sp.csr_matrix]:
+        """``bow`` of each image, quantized together."""
+        return [self._vector(words) for words in self.vocabulary.quantize_many(documents)]
+
     def add(self, name: str, descriptors: np.ndarray, stamp_ns: int,
             position_m: np.ndarray | None = None) -> None:
-        self.names.append(name)
-        self.stamps_ns.append(int(stamp_ns))
-        self.positions_m.append(position_m)
-        self._rows.append(self.bow(descriptors))
+        self.add_many([name], [descriptors], [stamp_ns], [position_m])
+
+    def add_many(self, names: list[str], descriptors: list[np.ndarray], stamps_ns: list[int],
+                 positions_m: list[np.ndarray | None] | None = None) -> None:
+        """``add`` of each image, quantized together."""
+        self.names.extend(names)
+        self.stamps_ns.extend(int(s) for s in stamps_ns)
+        self.positions_m.extend(positions_m if positions_m is not None else [None] * len(names))
+        self._rows.extend(self.bows(descriptors))
         self._matrix = None
 
     def __len__(self) -> int:

@@ -55,9 +55,9 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
     depend on it."""
     frames = keyframes.images_in_time_order()
     database = ImageDatabase(vocabulary)
-    for keyframe in frames:
-        database.add(keyframe.image_name, features[keyframe.image_name].descriptors,
-                     keyframe.stamp_ns)
+    database.add_many([k.image_name for k in frames],
+                      [features[k.image_name].descriptors for k in frames],
+                      [k.stamp_ns for k in frames])
     by_name = {k.image_name: k for k in frames}
     path_m = keyframes.travelled_path_m(frames)
 

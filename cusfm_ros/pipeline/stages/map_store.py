@@ -73,15 +73,19 @@ def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: 
     order = np.lexsort((points.obs_keypoint, obs_keyframe))
     offsets = np.searchsorted(obs_keyframe[order], np.arange(len(names) + 1)).astype(np.int64)
     database = ImageDatabase(vocabulary)
-    descriptors, rows = [], []
+    descriptors, rows, new = [], {}, {}
     dim = None
     for k, name in enumerate(names):
         f = features.features(name)
         dim = f.descriptors.shape[1]
-        rows.append(bow_rows[name] if bow_rows and name in bow_rows
-                    else database.bow(f.descriptors))
+        if bow_rows and name in bow_rows:
+            rows[name] = bow_rows[name]
+        else:
+            new[name] = f.descriptors
         sel = order[offsets[k]:offsets[k + 1]]
         descriptors.append(f.descriptors[points.obs_keypoint[sel]])
+    rows.update(zip(new, database.bows(list(new.values()))))  # quantized together
+    rows = [rows[name] for name in names]
     obs_descriptor = (np.concatenate(descriptors) if descriptors
                       else np.zeros((0, dim or vocabulary.dim), np.float32))
     bow = sp.vstack(rows).tocsr() if rows else sp.csr_matrix((0, vocabulary.num_words))
