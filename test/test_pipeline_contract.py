@@ -423,12 +423,41 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
         assert (tmp_path / "batched.json").read_bytes() == run.loops.read_bytes()
         assert max(batched.batches) == 3
         assert sum(batched.batches) == counts["verified_candidates"] > len(loops_batched)
-        graph = optimize_pose_graph(keyframes, loops, features, KnnMatcher(),
+        one_at_a_time = []
+
+        class CountingKnn(KnnMatcher):
+            def match(self, features0, features1):
+                one_at_a_time.append(1)
+                return super().match(features0, features1)
+
+        graph = optimize_pose_graph(keyframes, loops, features, CountingKnn(),
                                     options.pose_graph, "rig", 0, threads=1)
         written = read_tum(run.pose_graph_poses)
         assert np.array_equal(graph.world_from_rig.stamps_ns, written.stamps_ns)
         assert np.allclose(graph.world_from_rig.world_from_body, written.world_from_body,
                            atol=1e-6)
+        # the loop measurement's matches through the batched path (query-match, then
+        # partner-match pairs), remembered in the cache as computed
+        batched, cached = _BatchedKnn(), _BatchedKnn()
+        on_batches = optimize_pose_graph(keyframes, loops, features, batched,
+                                         options.pose_graph, "rig", 0, threads=2)
+        np.testing.assert_array_equal(on_batches.world_from_rig.world_from_body,
+                                      graph.world_from_rig.world_from_body)
+        assert max(batched.batches) == 3
+        assert sum(batched.batches) == len(one_at_a_time) >= len(loops)
+        with FeatureStore(tmp_path / "graph_cache.h5", {}) as graph_cache:
+            with_cache = optimize_pose_graph(keyframes, loops, features, cached,
+                                             options.pose_graph, "rig", 0, graph_cache,
+                                             threads=2)
+            remembered = graph_cache.pairs()
+            for name0, name1 in remembered:
+                np.testing.assert_array_equal(
+                    graph_cache.matches(name0, name1).indices,
+                    KnnMatcher().match(features[name0], features[name1]).indices)
+        np.testing.assert_array_equal(with_cache.world_from_rig.world_from_body,
+                                      graph.world_from_rig.world_from_body)
+        # a pair that comes again is read from the cache once it is there
+        assert 0 < len(remembered) <= sum(cached.batches) <= sum(batched.batches)
         # the loop measurements on two spawned worker processes (this bag has too few loops
         # for the default minimum; two chunks of two at least)
         assert len(loops) >= 4

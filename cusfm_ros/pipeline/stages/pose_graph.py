@@ -30,7 +30,7 @@ from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import read_loops
 from cusfm_ros.io.tum import write_tum
-from cusfm_ros.pipeline.components import LazyMatcher
+from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.parallel import ordered_map, process_map
@@ -130,7 +130,8 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
         edges += _sequential_edges(keyframes)
 
     def inputs():
-        """(edge, query, match, partner, cached query-match and partner-match matches)."""
+        """(edge, query, match, partner, query-match and partner-match matches (cached, or
+        None), whether each was computed now)."""
         for edge in edges:
             query, match = images[edge.query_image], images[edge.match_image]
             if query.sample_id == match.sample_id:
@@ -141,27 +142,39 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
             yield (edge, query, match, partner,
                    cached_matches(cache, query.image_name, match.image_name),
                    None if partner is None else
-                   cached_matches(cache, partner.image_name, match.image_name))
+                   cached_matches(cache, partner.image_name, match.image_name), False, False)
+
+    def query_pair(item):
+        return None if item[4] is not None else (features[item[1].image_name],
+                                                 features[item[2].image_name])
+
+    def partner_pair(item):
+        return None if item[3] is None or item[5] is not None else (
+            features[item[3].image_name], features[item[2].image_name])
 
     def missing_matches(item):
-        """The item's raw matches, those not in the cache computed (on a worker thread)."""
-        edge, query, match, partner, matches_qm, matches_pm = item
+        """The item with its matches, those still missing computed (on a worker thread)."""
+        edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm = item
         if matches_qm is None:
-            matches_qm = matcher.match(features[query.image_name], features[match.image_name])
+            matches_qm, new_qm = matcher.match(*query_pair(item)), True
         if partner is not None and matches_pm is None:
-            matches_pm = matcher.match(features[partner.image_name],
-                                       features[match.image_name])
-        return matches_qm, matches_pm
+            matches_pm, new_pm = matcher.match(*partner_pair(item)), True
+        return edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm
 
-    # matching runs on threads; the measurement on processes: it is mostly Python (scipy's
-    # least squares calls back per iteration), so threads only fight for the GIL (measured
-    # on the H200 machine, 300 frames, 1267 loops: 105 s on 16 threads, 48 s in one thread)
+    # pairs to match go to a batched matcher (GPU) from this thread, the rest to threads;
+    # the measurement runs on processes: it is mostly Python (scipy's least squares calls
+    # back per iteration), so threads only fight for the GIL (measured on the H200 machine,
+    # 300 frames, 1267 loops: 105 s on 16 threads, 48 s in one thread)
+    items = with_batched_matches(inputs(), matcher, query_pair,
+                                 lambda item, found: (*item[:4], found, item[5], True, item[7]))
+    items = with_batched_matches(items, matcher, partner_pair,
+                                 lambda item, found: (*item[:5], found, item[6], True))
     measured_items, measurements = [], []
-    for item, (matches_qm, matches_pm) in ordered_map(missing_matches, inputs(), threads):
-        edge, query, match, partner, cached_qm, cached_pm = item
-        if cached_qm is None:
+    for _, item in ordered_map(missing_matches, items, threads):
+        edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm = item
+        if new_qm:
             remember_matches(cache, query.image_name, match.image_name, matches_qm)
-        if partner is not None and cached_pm is None:
+        if new_pm:
             remember_matches(cache, partner.image_name, match.image_name, matches_pm)
         prior = keyframes.world_from_rig(match).inverse() * keyframes.world_from_rig(query)
         measured_items.append(item)
