@@ -250,8 +250,11 @@ def test_images_quantized_together_get_their_own_words(rng, kind):
     points, _ = clustered(rng, clusters=16, per_cluster=100)
     tree = VocabularyTree.build(points, SMALL).use_arrays(arrays_of(kind))
     documents = [points[:300], points[300:300], points[300:1000], points[1000:]]
-    for together, alone in zip(tree.quantize_many(documents), documents):
-        np.testing.assert_array_equal(together, tree.quantize(alone))
+    for batch in (1 << 18, 250):  # 250: groups of images, and an image larger than a group
+        together = tree.quantize_many(documents, batch_descriptors=batch)
+        assert len(together) == len(documents)
+        for words, alone in zip(together, documents):
+            np.testing.assert_array_equal(words, tree.quantize(alone))
     tree.set_idf(documents)
     idf = tree.idf.copy()
     counts = np.zeros(tree.num_words)

@@ -25,6 +25,9 @@ from cusfm_ros.core.retrieval.kmeans import hierarchical_kmeans
 from cusfm_ros.errors import ConfigError, CusfmError
 
 logger = logging.getLogger(__name__)
+
+QUANTIZE_BATCH = 1 << 18
+"""Descriptors quantized in one descent when many images are (128 MB of 128-d float32)."""
 FORMAT_VERSION = 1
 
 
@@ -119,7 +122,7 @@ class VocabularyTree:
             tree.set_idf(documents)
         return tree
 
-    def set_idf(self, documents, batch_descriptors: int = 1 << 20) -> None:
+    def set_idf(self, documents, batch_descriptors: int = QUANTIZE_BATCH) -> None:
         """IDF = log(N / n_w) over the images (descriptor sets) the vocabulary is used for;
         ``documents`` may be any iterable (streamed: images are quantized together up to
         ``batch_descriptors`` descriptors at a time, then dropped)."""
@@ -150,17 +153,28 @@ class VocabularyTree:
         self.arrays, self._there = arrays, None
         return self
 
-    def quantize_many(self, documents: list[np.ndarray]) -> list[np.ndarray]:
-        """``quantize`` of each image's descriptors, all images in one descent (on a GPU,
-        one call per image costs more in launches and transfers than the arithmetic)."""
-        if not documents:
-            return []
+    def quantize_many(self, documents: list[np.ndarray], batch_descriptors: int = QUANTIZE_BATCH
+                      ) -> list[np.ndarray]:
+        """``quantize`` of each image's descriptors, consecutive images together in one
+        descent of up to ``batch_descriptors`` descriptors (on a GPU, one call per image
+        costs more in launches and transfers than the arithmetic; the bound keeps the
+        concatenated copy small)."""
         arrays = [np.asarray(d, np.float32) for d in documents]
         for array in arrays:
             if len(array):
                 self._check_dim(array)
-        words = self.quantize(np.concatenate([a.reshape(-1, self.dim) for a in arrays]))
-        return np.split(words, np.cumsum([len(a) for a in arrays])[:-1])
+        out, start = [], 0
+        while start < len(arrays):
+            stop, held = start, 0
+            while stop < len(arrays) and (stop == start or held + len(arrays[stop])
+                                          <= batch_descriptors):
+                held += len(arrays[stop])
+                stop += 1
+            group = arrays[start:stop]
+            words = self.quantize(np.concatenate([a.reshape(-1, self.dim) for a in group]))
+            out += np.split(words, np.cumsum([len(a) for a in group])[:-1])
+            start = stop
+        return out
 
     def _check_dim(self, points: np.ndarray) -> None:
         if points.ndim != 2 or (len(points) and points.shape[1] != self.dim):

@@ -19,7 +19,7 @@ from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.localization.prior_map import PriorMap
 from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.core.retrieval.database import ImageDatabase
-from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
+from cusfm_ros.core.retrieval.vocabulary import QUANTIZE_BATCH, VocabularyTree
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CusfmError
 from cusfm_ros.io.extrinsics_yaml import read_extrinsics
@@ -73,7 +73,12 @@ def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: 
     order = np.lexsort((points.obs_keypoint, obs_keyframe))
     offsets = np.searchsorted(obs_keyframe[order], np.arange(len(names) + 1)).astype(np.int64)
     database = ImageDatabase(vocabulary)
-    descriptors, rows, new = [], {}, {}
+    descriptors, rows, pending = [], {}, {}
+
+    def quantize_pending() -> None:  # images quantized together, a bounded batch at a time
+        rows.update(zip(pending, database.bows(list(pending.values()))))
+        pending.clear()
+
     dim = None
     for k, name in enumerate(names):
         f = features.features(name)
@@ -81,10 +86,12 @@ def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: 
         if bow_rows and name in bow_rows:
             rows[name] = bow_rows[name]
         else:
-            new[name] = f.descriptors
+            pending[name] = f.descriptors
+            if sum(len(d) for d in pending.values()) >= QUANTIZE_BATCH:
+                quantize_pending()
         sel = order[offsets[k]:offsets[k + 1]]
         descriptors.append(f.descriptors[points.obs_keypoint[sel]])
-    rows.update(zip(new, database.bows(list(new.values()))))  # quantized together
+    quantize_pending()
     rows = [rows[name] for name in names]
     obs_descriptor = (np.concatenate(descriptors) if descriptors
                       else np.zeros((0, dim or vocabulary.dim), np.float32))
