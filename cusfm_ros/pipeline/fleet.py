@@ -154,8 +154,8 @@ def reindex_map(map_dir: str, session_dir: str, vocabulary_path: str, out_dir: s
     vocabulary = load_vocabulary(vocabulary_path)
     database = ImageDatabase(vocabulary)
     with FeatureStore(RunDir(Path(session_dir)).features, {}, read_only=True) as store:
-        rows = [database.bow(store.features(k.image_name).descriptors)
-                for k in prior.keyframes.keyframes]
+        rows = database.bows(store.features(k.image_name).descriptors
+                             for k in prior.keyframes.keyframes)
     out = Path(out_dir) / "map"
     write_map_store(out, replace(prior, vocabulary=vocabulary, bow=sp.vstack(rows).tocsr()),
                     map_poses_text(map_dir))

@@ -15,13 +15,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from cusfm_ros.core.accelerator import Arrays
 from cusfm_ros.core.index_ranges import concatenated_ranges
 from cusfm_ros.core.mapping.bundle_adjustment import (BundleAdjuster, BundleOptions,
                                                       BundleProblem, BundleResult,
                                                       RelativeFactors)
 from cusfm_ros.core.mapping.self_calibration import (SelfCalibrationOptions, apply_offsets,
                                                      estimate_offsets, shared_tracks)
-from cusfm_ros.core.accelerator import Arrays
 from cusfm_ros.core.mapping.triangulation import TriangulationOptions, triangulate_tracks
 from cusfm_ros.errors import ConfigError, MappingError
 

@@ -6,6 +6,7 @@ columns are the inverted index (word -> images), so a query is one sparse produc
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,13 +41,12 @@ class ImageDatabase:
 
     def bow(self, descriptors: np.ndarray) -> sp.csr_matrix:
         """L2-normalized TF-IDF vector (1, W) of an image's descriptors."""
-        if len(descriptors) == 0:
-            return self._vector(np.zeros(0, np.int64))
-        return self._vector(self.vocabulary.quantize(descriptors))
+        return self.bows([descriptors])[0]
 
-    def bows(self, documents: list[np.ndarray]) -> list[sp.csr_matrix]:
-        """``bow`` of each image, quantized together."""
-        return [self._vector(words) for words in self.vocabulary.quantize_many(documents)]
+    def bows(self, documents: Iterable[np.ndarray]) -> list[sp.csr_matrix]:
+        """``bow`` of each image, quantized together (``quantize_stream``: ``documents`` may
+        be streamed)."""
+        return [self._vector(words) for words in self.vocabulary.quantize_stream(documents)]
 
     def add(self, name: str, descriptors: np.ndarray, stamp_ns: int,
             position_m: np.ndarray | None = None) -> None:

@@ -14,6 +14,7 @@ versioned ``.npz``.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,23 +125,12 @@ class VocabularyTree:
 
     def set_idf(self, documents, batch_descriptors: int = QUANTIZE_BATCH) -> None:
         """IDF = log(N / n_w) over the images (descriptor sets) the vocabulary is used for;
-        ``documents`` may be any iterable (streamed: images are quantized together up to
-        ``batch_descriptors`` descriptors at a time, then dropped)."""
-        counts, images, batch, held = np.zeros(self.num_words), 0, [], 0
-
-        def count(batch):
-            for words in self.quantize_many(batch):
-                if len(words):
-                    counts[np.unique(words)] += 1
-
-        for descriptors in documents:
+        ``documents`` may be any iterable (streamed: ``quantize_stream``)."""
+        counts, images = np.zeros(self.num_words), 0
+        for words in self.quantize_stream(documents, batch_descriptors):
             images += 1
-            batch.append(descriptors)
-            held += len(descriptors)
-            if held >= batch_descriptors:
-                count(batch)
-                batch, held = [], 0
-        count(batch)
+            if len(words):
+                counts[np.unique(words)] += 1
         self.idf = np.log(max(images, 1) / np.maximum(counts, 1)).astype(np.float32)
 
     # --------------------------------------------------------------------------- quantize
@@ -153,28 +143,33 @@ class VocabularyTree:
         self.arrays, self._there = arrays, None
         return self
 
-    def quantize_many(self, documents: list[np.ndarray], batch_descriptors: int = QUANTIZE_BATCH
-                      ) -> list[np.ndarray]:
-        """``quantize`` of each image's descriptors, consecutive images together in one
-        descent of up to ``batch_descriptors`` descriptors (on a GPU, one call per image
-        costs more in launches and transfers than the arithmetic; the bound keeps the
-        concatenated copy small)."""
-        arrays = [np.asarray(d, np.float32) for d in documents]
-        for array in arrays:
+    def quantize_stream(self, documents: Iterable[np.ndarray],
+                        batch_descriptors: int = QUANTIZE_BATCH) -> Iterator[np.ndarray]:
+        """``quantize`` of each image's descriptors, in order. Consecutive images are
+        quantized together, in one descent of up to ``batch_descriptors`` descriptors (on a
+        GPU, one call per image costs more in launches and transfers than the arithmetic);
+        only that group is held, so ``documents`` may be streamed."""
+        group, held = [], 0
+        for document in documents:
+            array = np.asarray(document, np.float32)
             if len(array):
                 self._check_dim(array)
-        out, start = [], 0
-        while start < len(arrays):
-            stop, held = start, 0
-            while stop < len(arrays) and (stop == start or held + len(arrays[stop])
-                                          <= batch_descriptors):
-                held += len(arrays[stop])
-                stop += 1
-            group = arrays[start:stop]
-            words = self.quantize(np.concatenate([a.reshape(-1, self.dim) for a in group]))
-            out += np.split(words, np.cumsum([len(a) for a in group])[:-1])
-            start = stop
-        return out
+            if group and held + len(array) > batch_descriptors:
+                yield from self._quantize_group(group)
+                group, held = [], 0
+            group.append(array)
+            held += len(array)
+        if group:
+            yield from self._quantize_group(group)
+
+    def quantize_many(self, documents: Iterable[np.ndarray],
+                      batch_descriptors: int = QUANTIZE_BATCH) -> list[np.ndarray]:
+        """``quantize_stream`` as a list."""
+        return list(self.quantize_stream(documents, batch_descriptors))
+
+    def _quantize_group(self, group: list[np.ndarray]) -> list[np.ndarray]:
+        words = self.quantize(np.concatenate([a.reshape(-1, self.dim) for a in group]))
+        return np.split(words, np.cumsum([len(a) for a in group])[:-1])
 
     def _check_dim(self, points: np.ndarray) -> None:
         if points.ndim != 2 or (len(points) and points.shape[1] != self.dim):
