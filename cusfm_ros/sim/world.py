@@ -99,8 +99,10 @@ class World:
 
 
 def _facade_row(world: World, textures: TextureLibrary, rng, start, direction, length,
-                offset_m, side: float, min_height, max_height, gap_probability):
-    """Buildings along one straight, facing the road, on the side ``side`` (+1 left)."""
+                offset_m, side: float, min_height, max_height, gap_probability,
+                span_m: tuple[float, float] = (-np.inf, np.inf)):
+    """Buildings along one straight, facing the road, on the side ``side`` (+1 left), each
+    clipped to ``span_m`` (distance along the straight from its start)."""
     normal_in = np.array([-direction[1], direction[0]]) * side  # towards the facade
     facade_ids = textures.ids("facade_")
     poster_ids = textures.ids("poster_")
@@ -111,6 +113,12 @@ def _facade_row(world: World, textures: TextureLibrary, rng, start, direction, l
             position += rng.uniform(3.0, 8.0)
             continue
         setback = rng.uniform(-0.8, 0.8)
+        begin, end = max(position, span_m[0]), min(position + width, span_m[1])
+        if end - begin < 3.0:  # outside the span, or too thin a sliver of a building
+            position += width + rng.uniform(0.0, 1.5)
+            continue
+        next_position = position + width
+        position, width = begin, end - begin
         base = start + direction * position + normal_in * (offset_m + setback)
         height = rng.uniform(min_height, max_height)
         # seen from the road, the facade's u axis runs to the viewer's right
@@ -125,7 +133,7 @@ def _facade_row(world: World, textures: TextureLibrary, rng, start, direction, l
                 -normal_in * 0.03, rng.uniform(0.6, 1.6)]
             world.add_quad(sign_origin, u, [0, 0, 1], sign_w, sign_w * 0.6,
                            int(rng.choice(poster_ids)), sign_w / TEXTURE_SIZE, rng, "sign")
-        position += width + rng.uniform(0.0, 1.5)
+        position = next_position + rng.uniform(0.0, 1.5)
 
 
 def build_street(route: Route, textures: TextureLibrary, seed: int) -> World:
@@ -143,8 +151,13 @@ def build_street(route: Route, textures: TextureLibrary, seed: int) -> World:
         _facade_row(world, textures, rng, start, direction, length, facade_offset, -1.0, 7, 22,
                     0.12)
         if inner_room > facade_offset + 2.0:
+            # inside the block a row ends where the next straight's would begin, facade_offset
+            # from both roads' centre lines: past it the car would drive through the building
+            # at the corner (a 1000-frame street did, once a lap)
+            inner = (facade_offset - route.corner_radius_m,
+                     length + route.corner_radius_m - facade_offset)
             _facade_row(world, textures, rng, start, direction, length, facade_offset, 1.0, 6,
-                        15, 0.2)
+                        15, 0.2, inner)
         left = np.array([-direction[1], direction[0]])
         # lane markings: dashed centre line slightly above the asphalt
         for d in np.arange(1.0, length - 3.0, 6.0):
