@@ -88,6 +88,44 @@ def test_lightglue_onnx_equals_torch(aliked, lightglue, motorcycle):
     np.testing.assert_array_equal(ours.indices, reference.numpy())
 
 
+def test_fused_attention_equals_the_exported_graph(aliked, motorcycle, monkeypatch):
+    """``fuse_attention`` (scaled-dot-product attention, the torch backend's) gives the explicit
+    graph's log assignment to rounding, padded (masked) or not, and the same matches."""
+    from cusfm_ros.models.build import load_lightglue
+    from cusfm_ros.models.nets.lightglue import filter_matches, normalize_keypoints
+
+    f0, f1 = aliked.extract(motorcycle[0]), aliked.extract(motorcycle[1])
+    k0 = normalize_keypoints(torch.from_numpy(f0.keypoints_px)[None], 480, 320)
+    k1 = normalize_keypoints(torch.from_numpy(f1.keypoints_px)[None], 480, 320)
+    d0, d1 = torch.from_numpy(f0.descriptors)[None], torch.from_numpy(f1.descriptors)[None]
+    explicit, fused = load_lightglue(), load_lightglue().fuse_attention()
+    pad = 37  # image 1 padded: zeros behind a mask, as in a batch of pairs of different sizes
+    padded = [torch.cat([t, torch.zeros(1, pad, t.shape[2])], 1) for t in (k1, d1)]
+    mask1 = torch.ones(1, len(f1) + pad, dtype=torch.bool)
+    mask1[:, len(f1):] = False
+    calls, sdpa = [], torch.nn.functional.scaled_dot_product_attention
+    monkeypatch.setattr(torch.nn.functional, "scaled_dot_product_attention",
+                        lambda *a, **k: calls.append(k["attn_mask"] is None) or sdpa(*a, **k))
+    with torch.no_grad():
+        reference = explicit(k0, k1, d0, d1)
+        assert calls == []
+        plain = fused(k0, k1, d0, d1)
+        assert calls == [True] * 36  # 9 layers: self-attention of each image, cross both ways
+        masked = fused(k0, padded[0], d0, padded[1], None, mask1)
+    assert len(f0) > 300 and len(f1) > 300
+    # assignment probabilities to 5e-4 after 9 layers (log values far below 0 differ in
+    # their 4th digit)
+    np.testing.assert_allclose(plain.exp().numpy(), reference.exp().numpy(), atol=5e-4)
+    real = torch.cat([torch.arange(len(f1)), torch.tensor([len(f1) + pad])])  # + the dustbin
+    np.testing.assert_allclose(masked[:, :, real].exp().numpy(), reference.exp().numpy(),
+                               atol=5e-4)
+    assert torch.isinf(masked[0, :-1, len(f1):-1]).all()
+    matches, _ = filter_matches(reference, 0.1)
+    assert len(matches) > 200
+    for scores in (plain, masked[:, :, real]):
+        np.testing.assert_array_equal(filter_matches(scores, 0.1)[0].numpy(), matches.numpy())
+
+
 @pytest.mark.parametrize("threshold, max_keypoints", [(0.2, -1), (0.2, 50), (0.0, 300)])
 def test_numpy_detection_equals_torch(rng, threshold, max_keypoints):
     from cusfm_ros.models.nets.aliked import detect_keypoints as torch_detect

@@ -152,7 +152,7 @@ class TorchLightGlueMatcher:
         self.torch = torch
         self.options = options
         self.device = _device(options.device)
-        self.model = load_lightglue(weights).to(self.device)
+        self.model = load_lightglue(weights).fuse_attention().to(self.device)
         self.steps = _TorchLayerSteps(self.model)
 
     def config(self) -> dict:
@@ -232,8 +232,9 @@ class TorchLightGlueMatcher:
 
     def _match_padded(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
         """One pass over pairs padded to the largest side of each image, masks marking the
-        real points (``LightGlueNet.forward``); the mutual-best filter runs on the device and
-        only each point's partner, confidence and validity come back."""
+        real points (``LightGlueNet.forward``; none on a side no pair pads); the mutual-best
+        filter runs on the device and only each point's partner, confidence and validity come
+        back."""
         torch = self.torch
         counts = np.array([(len(a), len(b)) for a, b in pairs])
         size = counts.max(0)
@@ -251,8 +252,10 @@ class TorchLightGlueMatcher:
             def tensor(array):
                 return torch.from_numpy(array).to(self.device, non_blocking=True)
 
+            # a side every pair fills needs no mask (the flash kernel takes none)
+            masks = [None if m.all() else tensor(m) for m in masks]
             with self._precision():
-                scores = self.model(*(tensor(a) for a in (*batch[0], *batch[1], *masks)))
+                scores = self.model(*(tensor(a) for a in (*batch[0], *batch[1])), *masks)
             partner, confidence, valid = (t.cpu().numpy() for t in mutual_best(
                 scores, self.options.filter_threshold))
         results = []

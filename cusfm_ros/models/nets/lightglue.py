@@ -5,7 +5,10 @@ assignment matrix (B, M+1, N+1); this is the graph exported to ONNX with dynamic
 counts. The adaptive variant (early exit and point pruning, decided between layers) runs the
 pieces one at a time: ``Embed``, ``LayerStep`` and ``Assign`` are those pieces, exported one
 graph each; the decisions live in ``cusfm_ros.core.features.adaptive_lightglue``. Attention
-is written with explicit matrix products and softmax so that the export is a plain graph.
+is written with explicit matrix products and softmax so that the export is a plain graph;
+``LightGlueNet.fuse_attention()`` switches a model that runs in torch to PyTorch's
+scaled-dot-product attention (one fused kernel, no B x heads x M x N matrix in memory; the
+same values to rounding).
 Match filtering (mutual best + threshold) lives in numpy at run time
 (``cusfm_ros.core.features.lightglue``) and in ``filter_matches`` here for the torch backend.
 """
@@ -59,8 +62,16 @@ def _masked(sim: torch.Tensor, keys: torch.Tensor | None) -> torch.Tensor:
 
 
 def _attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor,
-               keys: torch.Tensor | None = None) -> torch.Tensor:
-    scale = q.shape[-1] ** -0.5
+               keys: torch.Tensor | None = None, scale: float | None = None,
+               fused: bool = False) -> torch.Tensor:
+    """softmax(q k^T scale) v over (B, heads, N, d), ``keys`` (B, N) marking the real keys;
+    ``scale`` None: 1/sqrt(d). ``fused``: ``F.scaled_dot_product_attention`` (flash or
+    memory-efficient kernels on a GPU) instead of the explicit graph the export needs."""
+    scale = q.shape[-1] ** -0.5 if scale is None else scale
+    if fused:
+        mask = None if keys is None else keys[:, None, None, :]
+        return F.scaled_dot_product_attention(q, k, v.contiguous(), attn_mask=mask,
+                                              scale=scale)
     return torch.softmax(_masked(q @ k.transpose(-1, -2) * scale, keys), dim=-1) @ v
 
 
@@ -71,12 +82,14 @@ class SelfBlock(nn.Module):
         self.Wqkv = nn.Linear(dim, 3 * dim)
         self.out_proj = nn.Linear(dim, dim)
         self.ffn = _ffn(dim)
+        self.fused = False
 
     def forward(self, x: torch.Tensor, encoding: torch.Tensor,
                 mask: torch.Tensor | None = None) -> torch.Tensor:
         qkv = self.Wqkv(x).unflatten(-1, (self.heads, -1, 3)).transpose(1, 2)
         q, k, v = qkv[..., 0], qkv[..., 1], qkv[..., 2]
-        context = _attention(_rotary(encoding, q), _rotary(encoding, k), v, mask)
+        context = _attention(_rotary(encoding, q), _rotary(encoding, k), v, mask,
+                             fused=self.fused)
         message = self.out_proj(context.transpose(1, 2).flatten(start_dim=-2))
         return x + self.ffn(torch.cat([x, message], -1))
 
@@ -90,6 +103,7 @@ class CrossBlock(nn.Module):
         self.to_v = nn.Linear(dim, dim)
         self.to_out = nn.Linear(dim, dim)
         self.ffn = _ffn(dim)
+        self.fused = False
 
     def forward(self, x0: torch.Tensor, x1: torch.Tensor, mask0: torch.Tensor | None = None,
                 mask1: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -98,9 +112,13 @@ class CrossBlock(nn.Module):
 
         qk0, qk1 = heads(self.to_qk(x0)) * self.scale**0.5, heads(self.to_qk(x1)) * self.scale**0.5
         v0, v1 = heads(self.to_v(x0)), heads(self.to_v(x1))
-        sim = qk0 @ qk1.transpose(-1, -2)
-        m0 = torch.softmax(_masked(sim, mask1), dim=-1) @ v1
-        m1 = torch.softmax(_masked(sim.transpose(-1, -2), mask0), dim=-1) @ v0
+        if self.fused:  # two fused passes instead of one shared similarity matrix
+            m0 = _attention(qk0, qk1, v1, mask1, scale=1.0, fused=True)
+            m1 = _attention(qk1, qk0, v0, mask0, scale=1.0, fused=True)
+        else:
+            sim = qk0 @ qk1.transpose(-1, -2)
+            m0 = torch.softmax(_masked(sim, mask1), dim=-1) @ v1
+            m1 = torch.softmax(_masked(sim.transpose(-1, -2), mask0), dim=-1) @ v0
         m0 = self.to_out(m0.transpose(1, 2).flatten(start_dim=-2))
         m1 = self.to_out(m1.transpose(1, 2).flatten(start_dim=-2))
         return (x0 + self.ffn(torch.cat([x0, m0], -1)), x1 + self.ffn(torch.cat([x1, m1], -1)))
@@ -167,6 +185,13 @@ class LightGlueNet(nn.Module):
         self.transformers = nn.ModuleList([TransformerLayer(dim, heads) for _ in range(layers)])
         self.log_assignment = nn.ModuleList([MatchAssignment(dim) for _ in range(layers)])
         self.token_confidence = nn.ModuleList([TokenConfidence(dim) for _ in range(layers - 1)])
+
+    def fuse_attention(self, fused: bool = True) -> LightGlueNet:
+        """Attention through ``F.scaled_dot_product_attention`` (runs in torch; not for the
+        ONNX export, whose graph keeps the explicit products)."""
+        for layer in self.transformers:
+            layer.self_attn.fused = layer.cross_attn.fused = fused
+        return self
 
     def load_reference_state_dict(self, state_dict: dict) -> None:
         # the published file also holds a non-persistent buffer of confidence thresholds
