@@ -4,8 +4,9 @@ CUDA device.
 Usage (on a GPU machine): python bench/gpu_features.py
 Prints median milliseconds (CUDA-synchronized) for the networks alone and end to end (with the
 keypoint detection and host transfers), fp32 and fp16 autocast, and LightGlue per pair when
-pairs are matched one at a time or padded into batches (``match_many``), with the share of
-fp32's matches that fp16 keeps; asserts nothing.
+pairs are matched one at a time or padded into batches (``match_many``), with fused
+(scaled-dot-product) and explicit attention, with the share of fp32's matches that fp16 keeps;
+asserts nothing.
 """
 
 from __future__ import annotations
@@ -83,6 +84,11 @@ def main() -> None:
                          f"{'fp16 autocast' if half else 'fp32'}",
                          median_ms(partial(batched.match_many, pairs), repeats=5) / 32))
             agreement.append((batch_pairs, half, batched.match_many(pairs[:2])[0]))
+            if batch_pairs == 16:  # the same with the explicit attention graph (the export's)
+                batched.model.fuse_attention(False)
+                rows.append((f"LightGlue 2x2048 per pair, batches of 16, "
+                             f"{'fp16 autocast' if half else 'fp32'}, explicit attention",
+                             median_ms(partial(batched.match_many, pairs), repeats=5) / 32))
     print(f"keypoints {len(f0)}/{len(f1)}, matches {len(m32)}")
     reference = {tuple(m) for m in TorchLightGlueMatcher(LightGlueOptions(
         batch_pairs=1, device="cuda")).match(g0, g1).indices}

@@ -156,3 +156,27 @@ def test_failed_write_keeps_previous_model(tmp_path, rng):
         write_model(model, tmp_path / "sparse", "txt")
     assert read_model(tmp_path / "sparse").images[1].camera_id != 99
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sparse"]
+
+
+@pytest.mark.parametrize("ext", ["txt", "bin"])
+def test_point_seen_in_unknown_image_is_named(tmp_path, rng, ext):
+    model = make_model(rng)
+    point_id = sorted(model.points3d)[3]
+    model.points3d[point_id].image_ids = model.points3d[point_id].image_ids.copy()
+    model.points3d[point_id].image_ids[-1] = 77
+    with pytest.raises(FormatError, match=rf"point {point_id} is observed in unknown "
+                                          r"image\(s\) \[77\]"):
+        write_model(model, tmp_path / "sparse", ext)
+    assert not (tmp_path / "sparse").exists()
+    good = make_model(np.random.default_rng(5))
+    write_model(good, tmp_path / "sparse", "txt")
+    points = tmp_path / "sparse" / "points3D.txt"
+    lines = points.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    fields = lines[first].split()
+    fields[8] = "55"  # the first track entry's image id
+    lines[first] = " ".join(fields)
+    points.write_text("\n".join(lines) + "\n")
+    with pytest.raises(FormatError, match=rf"points3D.txt:line {first + 1}: point {fields[0]} "
+                                          r"is observed in unknown image\(s\) \[55\]"):
+        read_model(tmp_path / "sparse")
