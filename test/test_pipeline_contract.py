@@ -237,6 +237,48 @@ def test_stages_run_on_explicit_inputs(loop_bag, tmp_path):
         assert all(verified.has_matches(a, b) for a, b in pairs)
 
 
+def test_map_stage_stores_the_loops_stage_bows(loop_bag, tmp_path, monkeypatch):
+    """The map stage takes each keyframe's bag of words from loops/bows.npz instead of
+    quantizing again: the same map, byte for byte; rows of another vocabulary are not used,
+    and a damaged file is named."""
+    from cusfm_ros.core.retrieval.database import ImageDatabase
+    from cusfm_ros.errors import FormatError
+    from cusfm_ros.io.bow_file import read_bows
+    from cusfm_ros.io.vocabulary_file import load_vocabulary
+    from cusfm_ros.pipeline.options import resolve_options
+    from cusfm_ros.pipeline.stages.vocabulary import build_vocabulary
+    from cusfm_ros.pipeline.stores import load_keyframes, open_features
+
+    run = RunDir(tmp_path / "run")
+    args = ["map", str(loop_bag / "bag"), "--out", str(run.root), *FAST]
+    assert main(args) == 0
+    vocabulary = load_vocabulary(run.vocabulary)
+    rows = read_bows(run.loop_bows, vocabulary)
+    keyframes = load_keyframes(run)
+    assert sorted(rows) == sorted(k.image_name for k in keyframes.keyframes)
+    stored = {p.name: p.read_bytes() for p in run.map_dir.iterdir()}
+    quantized, bows = [], ImageDatabase.bows
+    monkeypatch.setattr(ImageDatabase, "bows", lambda self, documents: bows(
+        self, [quantized.append(d) or d for d in documents]))
+    assert main(args + ["--steps", "map", "--overwrite"]) == 0
+    assert quantized == []  # every row came from the loops stage
+    run.loop_bows.unlink()
+    assert main(args + ["--steps", "map"]) == 0
+    assert len(quantized) == len(keyframes.keyframes)
+    assert {p.name: p.read_bytes() for p in run.map_dir.iterdir()} == stored
+    options = resolve_options(None, {"features.extractor.name": "sift",
+                                     "features.extractor.sift.max_keypoints": 768})
+    with open_features(run, options) as store:
+        other, _ = build_vocabulary([store.features(k.image_name).descriptors
+                                     for k in keyframes.keyframes][:10], options.vocabulary,
+                                    seed=1)
+    assert main(args + ["--steps", "loops"]) == 0
+    assert read_bows(run.loop_bows, other) == {}
+    run.loop_bows.write_bytes(b"not an npz")
+    with pytest.raises(FormatError, match=r"bows.npz: not a bag-of-words file .*rerun the loops"):
+        read_bows(run.loop_bows, vocabulary)
+
+
 def test_two_view_estimation_leaves_opencv_global_rng_alone(rng):
     import cv2
 

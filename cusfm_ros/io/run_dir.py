@@ -9,6 +9,7 @@ No stage spells a path literal; each asks its ``RunDir``. Layout:
     matches/raw.h5        cache of raw matcher output per pair (loops, pose graph, matching)
     vocabulary/           vocabulary.npz (+ birch_state.npz)
     loops/loops.json      verified loop closures
+    loops/bows.npz        bag-of-words vector of every keyframe (the map stage stores them)
     pose_graph/           poses.tum, summary.json
     pairs/                pairs.txt, pairs.json
     matching/matches.h5   geometrically verified matches per pair
@@ -74,6 +75,10 @@ class RunDir:
     @property
     def loops(self) -> Path:
         return self.root / "loops" / "loops.json"
+
+    @property
+    def loop_bows(self) -> Path:
+        return self.root / "loops" / "bows.npz"
 
     # graphs
     @property

@@ -1,6 +1,7 @@
 """Stage ``loops``: image database over all keyframes, top-k candidates per keyframe outside a
 time and travelled-path window, matching, essential-matrix verification ->
-``loops/loops.json`` (``LoopRecord`` list).
+``loops/loops.json`` (``LoopRecord`` list) and ``loops/bows.npz`` (every keyframe's
+bag-of-words vector, which the map stage stores).
 
 ``detect_loops(keyframes, features, vocabulary, matcher, options, seed)`` is the stage on
 explicit inputs; candidates are matched and verified on CPU threads (``cpu_threads``).
@@ -19,6 +20,7 @@ from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.retrieval.database import ImageDatabase
 from cusfm_ros.core.retrieval.loops import LoopOptions, LoopRecord, verify_pair
 from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
+from cusfm_ros.io.bow_file import write_bows
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import write_loops
 from cusfm_ros.io.vocabulary_file import load_vocabulary
@@ -46,18 +48,26 @@ def remember_matches(cache: FeatureStore | None, name0: str, name1: str, matches
         cache.put_matches(name0, name1, matches)
 
 
-def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
-                 vocabulary: VocabularyTree, matcher, options: LoopOptions = LoopOptions(),
-                 seed: int = 0, cache: FeatureStore | None = None, threads: int = 0
-                 ) -> tuple[list[LoopRecord], dict]:
-    """Verified loops between keyframes (each found once, from its later image). Candidates
-    are matched and verified on ``threads`` CPU threads (0: every core); the result does not
-    depend on it."""
+def loop_database(keyframes: KeyframeSet, features: dict[str, Features],
+                  vocabulary: VocabularyTree) -> ImageDatabase:
+    """Every keyframe in time order, quantized together."""
     frames = keyframes.images_in_time_order()
     database = ImageDatabase(vocabulary)
     database.add_many([k.image_name for k in frames],
                       [features[k.image_name].descriptors for k in frames],
                       [k.stamp_ns for k in frames])
+    return database
+
+
+def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
+                 vocabulary: VocabularyTree, matcher, options: LoopOptions = LoopOptions(),
+                 seed: int = 0, cache: FeatureStore | None = None, threads: int = 0,
+                 database: ImageDatabase | None = None) -> tuple[list[LoopRecord], dict]:
+    """Verified loops between keyframes (each found once, from its later image). Candidates
+    are matched and verified on ``threads`` CPU threads (0: every core); the result does not
+    depend on it. ``database``: ``loop_database`` of the same inputs, when already built."""
+    frames = keyframes.images_in_time_order()
+    database = database or loop_database(keyframes, features, vocabulary)
     by_name = {k.image_name: k for k in frames}
     path_m = keyframes.travelled_path_m(frames)
 
@@ -120,7 +130,8 @@ class LoopsStage(Stage):
     sections = {"loops": LoopOptions}
     reads = ("loops", "features.matcher", "seed")
     inputs = ("keyframes", "features", "vocabulary")
-    outputs = ("loops",)
+    outputs = ("loops", "loop_bows")
+    version = 2  # 2: loops/bows.npz
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
@@ -130,10 +141,13 @@ class LoopsStage(Stage):
         with open_features(run, options) as store, \
                 open_raw_matches(run, options, context.input_digests["features"]) as cache:
             features = {k.image_name: store.features(k.image_name) for k in keyframes.keyframes}
+            database = loop_database(keyframes, features, vocabulary)
             loops, counts = detect_loops(keyframes, features, vocabulary,
                                          LazyMatcher(options.features, options.device),
                                          options.loops, options.seed, cache,
-                                         options.cpu_threads)
+                                         options.cpu_threads, database)
+        write_bows(run.loop_bows, database.names,
+                   [database.vector(i) for i in range(len(database))], vocabulary)
         write_loops(run.loops, loops, keyframes)
         logger.info("loops: %d loops from %d verified candidates in %.1f s", len(loops),
                     counts["verified_candidates"], time.perf_counter() - started)

@@ -22,6 +22,7 @@ from cusfm_ros.core.retrieval.database import ImageDatabase
 from cusfm_ros.core.retrieval.vocabulary import QUANTIZE_BATCH, VocabularyTree
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CusfmError
+from cusfm_ros.io.bow_file import read_bows
 from cusfm_ros.io.extrinsics_yaml import read_extrinsics
 from cusfm_ros.io.map_points_file import read_map_points
 from cusfm_ros.io.map_store import write_map_store
@@ -61,8 +62,9 @@ def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: 
                     bow_rows: dict | None = None) -> PriorMap:
     """``keyframes`` as ``refined_keyframes`` gives them; ``features`` a store (or anything
     with ``features(name)``) holding every keyframe's features; ``bow_rows`` keeps the
-    bag-of-words vectors of images already in a map (map update: an old keyframe's stored
-    features are only those that observe points)."""
+    bag-of-words vectors of images already quantized: the loops stage's, or those of a map's
+    images (map update: an old keyframe's stored features are only those that observe
+    points)."""
     names = [k.image_name for k in keyframes.keyframes]
     index = {n: i for i, n in enumerate(names)}
     unknown = set(np.unique(points.obs_image)) - set(index)
@@ -110,7 +112,7 @@ class MapStoreStage(Stage):
     name = "map"
     reads = ("features", "vocabulary", "seed")
     inputs = ("keyframes", "features", "mapping_dir")
-    optional_inputs = ("vocabulary",)
+    optional_inputs = ("vocabulary", "loop_bows")
     outputs = ("map_dir",)
 
     def run(self, context: StageContext) -> dict:
@@ -124,14 +126,17 @@ class MapStoreStage(Stage):
                                        read_extrinsics(run.mapping_extrinsics).cameras.items()})
         points = read_map_points(run.mapping_points)
         with open_features(run, options) as store:
+            bow_rows = None
             if run.vocabulary.is_file():
                 vocabulary = load_vocabulary(run.vocabulary).use_device(options.device)
+                if run.loop_bows.is_file():  # the loops stage quantized every keyframe
+                    bow_rows = read_bows(run.loop_bows, vocabulary)
             else:  # the vocabulary stage was skipped: localization still needs one
                 vocabulary, _ = build_vocabulary(
                     [store.features(k.image_name).descriptors for k in keyframes.keyframes],
                     options.vocabulary, options.seed, options.device)
             prior_map = build_prior_map(keyframes, world_from_rig, points, store, vocabulary,
-                                        features_section(options))
+                                        features_section(options), bow_rows)
         manifest = write_map_store(run.map_dir, prior_map, run.mapping_poses.read_text())
         logger.info("map: %s in %.1f s -> %s", manifest["counts"],
                     time.perf_counter() - started, run.map_dir)
