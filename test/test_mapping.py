@@ -41,6 +41,47 @@ def test_one_wrong_match_does_not_cost_the_tracks_it_chains_together():
         assert len(set(keypoints.tolist())) == 1 and sorted(images.tolist()) == list(range(50))
 
 
+def test_tracks_equal_a_plain_greedy_union_find(rng):
+    """Many conflicts (10 % wrong matches over 30 images): the tracks are those of a plain
+    greedy union-find over every match, most confident first, refusing a merge that would put
+    two keypoints of one image into one track."""
+    matches, confidences = [], []
+    for i in range(30):
+        for j in range(i + 1, min(i + 4, 30)):
+            a = rng.choice(60, 40, replace=False)
+            b = a.copy()
+            wrong = rng.random(40) < 0.1
+            b[wrong] = rng.integers(0, 60, wrong.sum())
+            matches.append((i, j, np.stack([a, b], 1)))
+            confidences.append(rng.random(40))
+    tracks = build_tracks([60] * 30, matches, confidences=confidences)
+    parent, members = {}, {}
+
+    def find(x):
+        while parent.setdefault(x, x) != x:
+            x = parent[x]
+        return x
+
+    edges = sorted(((c, (i, a), (j, b)) for (i, j, m), cs in zip(matches, confidences)
+                    for (a, b), c in zip(m.tolist(), cs.tolist())), key=lambda e: -e[0])
+    rejected = 0
+    for _, u, v in edges:
+        ru, rv = find(u), find(v)
+        if ru == rv:
+            continue
+        mu, mv = members.get(ru, {u}), members.get(rv, {v})
+        if {n[0] for n in mu} & {n[0] for n in mv}:
+            rejected += 1
+            continue
+        parent[ru] = rv
+        members[rv] = mu | mv
+        members.pop(ru, None)
+    expected = sorted(tuple(sorted(m)) for m in members.values() if len(m) >= 2)
+    found = sorted(tuple(sorted(zip(*map(list, tracks.track(t))))) for t in range(len(tracks)))
+    assert rejected > 20 and tracks.rejected == rejected
+    assert found == expected
+
+
 def views(rng, count=5):
     """Cameras on an arc around the origin, looking at it (cam_from_world)."""
     poses = []
