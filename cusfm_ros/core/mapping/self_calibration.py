@@ -59,7 +59,7 @@ class SelfCalibrationOptions:
     min_offset_px: float = 0.1
     """A camera's first estimate below this in both axes, with a focal-length error below
     ``min_focal_ratio``, is not applied: it cannot be told apart from the keypoint detector's
-    own bias between two cameras. ALIKED measured -0.036 px (100 frames) and -0.016 px (1000)
+    own bias between two cameras. ALIKED measured -0.036 px (100 frames) and -0.013 px (1000)
     on the simulated street, whose true offset is 0; applying it made the maps 0.1-0.3 % too
     long (ATE 0.063 -> 0.041 m and 0.080 -> 0.064 m without). KITTI 06's real offset is
     0.27 px. Once a camera is corrected, later rounds refine its correction at any size."""
