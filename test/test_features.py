@@ -347,10 +347,12 @@ def test_knn_dense_and_blocked_paths_agree_and_a_tie_matches_once(rng, monkeypat
             blocked = KnnMatcher(options).match(f0, f1)
         np.testing.assert_array_equal(dense.indices, blocked.indices)
         np.testing.assert_allclose(dense.confidences, blocked.confidences, atol=1e-5)
-        # the shared part matches itself; row 299 (a copy of row 0) loses the tie to row 0
+        # the shared part matches itself; of row 0 and its copy, row 299, exactly one matches
+        # column 0 (which one is float rounding: BLAS may sum an edge row in another order)
         shared = dense.indices[dense.indices[:, 1] < 150]
-        assert len(shared) >= 140 and np.all(shared[:, 0] == shared[:, 1])
-        assert 0 in shared[:, 0] and 299 not in dense.indices[:, 0]
+        tie = np.isin(shared[:, 0], [0, 299])
+        assert len(shared) >= 140 and np.all(shared[~tie, 0] == shared[~tie, 1])
+        assert tie.sum() == 1 and shared[tie, 1].tolist() == [0]
         assert len(np.unique(dense.indices[:, 1])) == len(dense)
 
 
@@ -363,9 +365,13 @@ def test_knn_torch_distances_equal_numpys(rng):
     ours = knn._dense_nearest(Arrays(), f0.descriptors, f1.descriptors)
     theirs = knn._dense_nearest(Arrays(torch, "cpu"), f0.descriptors, f1.descriptors)
     np.testing.assert_array_equal(ours[0], theirs[0])
-    np.testing.assert_array_equal(ours[3], theirs[3])
     np.testing.assert_allclose(ours[1], theirs[1], atol=1e-4)
     np.testing.assert_allclose(ours[2], theirs[2], atol=1e-4)
+    # mutual candidates agree but for the exact tie (row 299 copies row 0): float rounding
+    # picks its side, and each path keeps at least one of the two
+    rest = np.setdiff1d(np.arange(len(ours[3])), [0, 299])
+    np.testing.assert_array_equal(ours[3][rest], theirs[3][rest])
+    assert ours[3][[0, 299]].any() and theirs[3][[0, 299]].any()
 
 
 @pytest.mark.gpu
