@@ -8,13 +8,16 @@ holds the two to identical keypoints.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import maximum_filter
 
 TEMPERATURE = 0.1
 
 
 def simple_nms(scores: np.ndarray, radius: int) -> np.ndarray:
     """Non-maximum suppression keeping the local maxima of a (H, W) map (others set to 0)."""
+    # imported here: scipy.ndimage is a quarter of every `cusfm` command's import time, and
+    # only ALIKED's numpy detection needs it
+    from scipy.ndimage import maximum_filter
+
     size = 2 * radius + 1
 
     def max_pool(x):
