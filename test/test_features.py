@@ -380,7 +380,12 @@ def test_knn_on_cuda_equals_cpu(rng):
         pytest.skip("no CUDA device")
     f0, f1 = _overlapping_descriptors(rng)
     cpu, cuda = KnnMatcher().match(f0, f1), KnnMatcher(device="cuda").match(f0, f1)
-    np.testing.assert_array_equal(cpu.indices, cuda.indices)
+
+    def settled(matches):  # the exact tie (row 299 copies row 0) may go either way
+        return matches.indices[~np.isin(matches.indices[:, 0], [0, 299])]
+
+    np.testing.assert_array_equal(settled(cpu), settled(cuda))
+    assert len(cpu) - len(settled(cpu)) == len(cuda) - len(settled(cuda)) == 1
 
 
 def test_knn_device_cuda_without_a_gpu_says_so():
