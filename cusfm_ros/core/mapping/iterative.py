@@ -324,14 +324,10 @@ class IterativeMapper:
         """One principal-point and focal estimate per camera against the others; the
         observations with the applied ones taken out (``corrections`` updated in place), and
         the largest applied update in pixels at the image's edge (0 when within the noise)."""
-        o = self.options.self_calibration
         estimates = estimate_offsets(poses, data.obs_image, data.obs_xy, data.obs_per_px,
-                                     data.offsets, active, o, data.obs_next_node,
-                                     data.obs_alpha, self.arrays)
-        # a first estimate within the detector's own bias is not applied (min_offset_px)
-        estimates = [replace(e, applied=False) if e.applied and e.camera not in corrections
-                     and np.all(np.abs(e.offset_px) < o.min_offset_px)
-                     and abs(e.focal_ratio) < o.min_focal_ratio else e for e in estimates]
+                                     data.offsets, active, self.options.self_calibration,
+                                     data.obs_next_node, data.obs_alpha, self.arrays,
+                                     frozenset(corrections))
         step_px = 0.0
         for e in estimates:
             entry = {"camera": e.camera, "offset_px": e.offset_px.tolist(),

@@ -121,13 +121,15 @@ def estimate_offsets(poses: BundleProblem, obs_image: np.ndarray, obs_xy: np.nda
                      obs_per_px: np.ndarray, offsets: np.ndarray, active: np.ndarray,
                      options: SelfCalibrationOptions = SelfCalibrationOptions(),
                      obs_next_node: np.ndarray | None = None,
-                     obs_alpha: np.ndarray | None = None, arrays: Arrays = Arrays()
-                     ) -> list[OffsetEstimate]:
+                     obs_alpha: np.ndarray | None = None, arrays: Arrays = Arrays(),
+                     corrected: frozenset[int] = frozenset()) -> list[OffsetEstimate]:
     """One estimate per rig camera (sensor) after the first that shares tracks with the
     others. ``poses``: the current node poses and extrinsics; the observations are grouped by
     track (``offsets``) and ``active`` marks the inliers to use; ``obs_next_node`` and
     ``obs_alpha``: the rolling-shutter interpolation of each observation, if any; ``arrays``:
-    where the triangulation runs."""
+    where the triangulation runs; ``corrected``: cameras already corrected, whose estimates
+    refine their correction at any size (others' must reach ``min_offset_px`` or
+    ``min_focal_ratio``)."""
     sensor_of_obs = poses.image_sensor[obs_image]
     num_tracks = len(offsets) - 1
     track_of_obs = np.repeat(np.arange(num_tracks), np.diff(offsets))
@@ -178,12 +180,16 @@ def estimate_offsets(poses: BundleProblem, obs_image: np.ndarray, obs_xy: np.nda
         design[:, 3] = np.r_[jac_px[ok, 0], jac_px[ok, 1]]
         coef, sigma = _robust_fit(design, np.r_[residual_px[ok, 0], residual_px[ok, 1]])
         offset = coef[:2]
-        applied = bool(np.all(np.abs(offset) <= options.max_offset_px)
-                       and abs(coef[2]) <= options.max_focal_ratio)
+        within = bool(np.all(np.abs(offset) <= options.max_offset_px)
+                      and abs(coef[2]) <= options.max_focal_ratio)
+        # a first estimate below the bar cannot be told apart from the detector's own bias
+        significant = bool(camera in corrected or np.any(np.abs(offset) >= options.min_offset_px)
+                           or abs(coef[2]) >= options.min_focal_ratio)
+        applied = within and significant
         edge_px = float(np.percentile(np.linalg.norm(radial_px, axis=1), 95))
         estimates.append(OffsetEstimate(camera, offset, sigma[:2], float(coef[2]),
                                         float(sigma[2]), float(coef[3]), n, applied, edge_px))
-        if not applied:
+        if not within:
             logger.warning("self-calibration: camera %d is (%.2f, %.2f) px and %.2f %% in "
                            "focal length off its calibration against the others, beyond the "
                            "limits (%.1f px, %.1f %%): not corrected; check the calibration",

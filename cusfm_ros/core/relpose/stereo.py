@@ -21,7 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.geometry import Rigid3, skew
 from cusfm_ros.core.relpose.two_view import TwoViewOptions, estimate_two_view
 from cusfm_ros.errors import ConfigError, GeometryError
 
@@ -66,12 +66,7 @@ def _two_view(points_cam: np.ndarray, points_map: np.ndarray, options: StereoPos
 
 def _sampson(map_from_cam: np.ndarray, points_cam: np.ndarray, points_map: np.ndarray):
     """Sampson distances (N,) of one pose (4, 4), or (K, N) of K poses (K, 4, 4)."""
-    rotation, translation = map_from_cam[..., :3, :3], map_from_cam[..., :3, 3]
-    t_cross = np.zeros(translation.shape + (3,))
-    t_cross[..., 0, 1], t_cross[..., 0, 2] = -translation[..., 2], translation[..., 1]
-    t_cross[..., 1, 0], t_cross[..., 1, 2] = translation[..., 2], -translation[..., 0]
-    t_cross[..., 2, 0], t_cross[..., 2, 1] = -translation[..., 1], translation[..., 0]
-    essential = t_cross @ rotation
+    essential = skew(map_from_cam[..., :3, 3]) @ map_from_cam[..., :3, :3]
     x0 = np.c_[points_cam, np.ones(len(points_cam))]
     x1 = np.c_[points_map, np.ones(len(points_map))]
     ex0 = x0 @ np.swapaxes(essential, -1, -2)

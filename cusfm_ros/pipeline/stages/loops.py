@@ -67,7 +67,8 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
     are matched and verified on ``threads`` CPU threads (0: every core); the result does not
     depend on it. ``database``: ``loop_database`` of the same inputs, when already built."""
     frames = keyframes.images_in_time_order()
-    database = database or loop_database(keyframes, features, vocabulary)
+    if database is None:  # (an empty database is falsy: test for None)
+        database = loop_database(keyframes, features, vocabulary)
     by_name = {k.image_name: k for k in frames}
     path_m = keyframes.travelled_path_m(frames)
 
