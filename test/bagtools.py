@@ -52,7 +52,8 @@ def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = 
               info_size: tuple[int, int] | None = None, rate_hz: float = 10.0,
               camera_offset_ns: int = 0, corrupt_image_at: int | None = None,
               damage=None) -> dict:
-    """Write a bag; returns the truth used (poses at odometry stamps, image stamps, rig).
+    """Write a bag; returns the truth used (poses at odometry stamps, image stamps, rig, the
+    RGB pixels of each image in stamp order).
     ``damage(msgtype, message, index)``, where given, may change each message (``index``
     counts the messages of that type) before it is written."""
     the_rig = make_rig(rig, "indoor", CAMERA)
@@ -67,7 +68,7 @@ def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = 
     rng = np.random.default_rng(0)
     info_camera = CAMERA if info_size is None else PinholeCamera(*info_size, fx=32, fy=32,
                                                                  cx=31.5, cy=23.5)
-    image_stamps = []
+    image_stamps, images = [], []
     with BagWriter(path, storage) as writer:
         bag = _Damaging(writer, damage)
         if tf_static:
@@ -93,6 +94,7 @@ def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = 
                 image_stamp = stamp + index * camera_offset_ns
                 image_stamps.append(image_stamp)
                 rgb = rng.integers(0, 255, (CAMERA.height, CAMERA.width, 3), dtype=np.uint8)
+                images.append(rgb)
                 if compressed:
                     image = m.compressed_image_msg(rgb, image_stamp, camera.frame_id)
                     if corrupt_image_at == len(image_stamps) - 1:  # a JPEG cut short
@@ -107,7 +109,7 @@ def write_bag(path: Path, *, frames: int = 6, storage: str = "mcap", rig: str = 
                     bag.write(f"/{camera.name}/camera_info", m.CAMERA_INFO, stamp + 2000,
                               m.camera_info_msg(info_camera, image_stamp, camera.frame_id))
     return {"odom_stamps": odom_stamps, "poses": poses, "rig": the_rig,
-            "image_stamps": np.array(image_stamps)}
+            "image_stamps": np.array(image_stamps), "images_rgb": images}
 
 
 def copy_bag(source: Path, target: Path, damage) -> None:

@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -9,6 +10,7 @@ from bagtools import START_NS, write_bag
 from cusfm_ros.cli.main import main
 from cusfm_ros.core.geometry import interpolate_poses
 from cusfm_ros.errors import BagError
+from cusfm_ros.io.bags import messages as m
 from cusfm_ros.io.frames_meta import read_frames_meta
 from cusfm_ros.io.tum import read_tum
 from cusfm_ros.pipeline.stages.keyframes import KeyframeOptions, extract_keyframes
@@ -39,6 +41,13 @@ def test_poses_images_and_calibration_come_through(tmp_path, storage, compressed
         assert (result.directory / keyframe.image_name).is_file()
     again = read_frames_meta(result.directory / "frames_meta.json")
     assert [k.image_name for k in again.keyframes] == [k.image_name for k in kfs.keyframes]
+    # the keyframe PNGs (written with fast settings) hold the bag's pixels exactly
+    for keyframe, rgb in zip(kfs.keyframes, truth["images_rgb"]):
+        written = cv2.imread(str(result.directory / keyframe.image_name), cv2.IMREAD_COLOR)
+        if compressed:  # JPEG in the bag: what it decodes to
+            jpeg = np.frombuffer(bytes(m.compressed_image_msg(rgb, 0, "cam").data), np.uint8)
+            rgb = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)[..., ::-1]
+        assert np.array_equal(written[..., ::-1], rgb)
 
 
 def test_bare_mcap_file_and_tf_pose_source(tmp_path):
