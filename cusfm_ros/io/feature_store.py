@@ -8,7 +8,10 @@ Layout (h5py):
 
 Image names may contain "/" (camera sub-folders); they are escaped so every entry is one group.
 An entry counts only once its ``complete`` flag is set (written last), so a run killed mid-write
-is resumed by redoing just the incomplete entry. Opening a store made with another
+is resumed by redoing just the incomplete entry. Writes reach the file at least every
+``flush_interval_s`` (and when the store closes, which an exception or Ctrl-C also does): an
+HDF5 flush per entry cost 2.5 ms, three times the write itself (2048 ALIKED features), so a
+kill -9 now loses at most that interval's entries. Opening a store made with another
 configuration raises, unless ``overwrite`` starts it afresh; a cache (``reset_on_mismatch``)
 starts afresh by itself, and ``recover`` replaces a file HDF5 cannot open (a kill mid-write).
 """
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -44,8 +48,10 @@ class FeatureStore:
 
     def __init__(self, path: str | os.PathLike, config: dict, overwrite: bool = False,
                  recover: bool = False, reset_on_mismatch: bool = False,
-                 read_only: bool = False) -> None:
+                 read_only: bool = False, flush_interval_s: float = 1.0) -> None:
         self.path = Path(path)
+        self.flush_interval_s = flush_interval_s
+        self._flushed_at = time.monotonic()
         self.config = json.dumps(config, sort_keys=True, default=str)
         self.overwrite = overwrite
         self.recover = recover
@@ -102,6 +108,13 @@ class FeatureStore:
             self._file.close()
             self._file = None
 
+    def _written(self) -> None:
+        """An entry is complete: flush it to the file once the interval has passed."""
+        now = time.monotonic()
+        if now - self._flushed_at >= self.flush_interval_s:
+            self._file.flush()
+            self._flushed_at = now
+
     # ---------------------------------------------------------------------------- features
     def has_features(self, name: str) -> bool:
         root = self._file.get("features")
@@ -118,7 +131,7 @@ class FeatureStore:
         group.create_dataset("descriptors", data=features.descriptors.astype(np.float32))
         group.attrs["image_size"] = np.asarray(features.image_size, np.int64)
         group.attrs["complete"] = True
-        self._file.flush()
+        self._written()
 
     def features(self, name: str) -> Features:
         if not self.has_features(name):
@@ -147,7 +160,7 @@ class FeatureStore:
         group.create_dataset("confidences", data=matches.confidences.astype(np.float32))
         group.attrs["image0"], group.attrs["image1"] = image0, image1
         group.attrs["complete"] = True
-        self._file.flush()
+        self._written()
 
     def matches(self, image0: str, image1: str) -> Matches:
         """Matches of a pair; asking for (b, a) after storing (a, b) swaps the columns."""
