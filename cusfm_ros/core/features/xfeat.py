@@ -17,7 +17,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.ndimage import maximum_filter
 
 from cusfm_ros.core.features.detection import bilinear
 from cusfm_ros.core.features.onnx_session import make_session
@@ -130,6 +129,8 @@ def detect_and_describe(heatmap: np.ndarray, reliability: np.ndarray, features: 
     """The graph's outputs for one image (heatmap (H, W), reliability (h, w), features
     (64, h, w)) -> keypoints (N, 2) in network pixels, scores (N,), descriptors (N, 64),
     strongest first."""
+    from scipy.ndimage import maximum_filter  # only when it runs: as in detection.simple_nms
+
     h, w = heatmap.shape
     local_max = maximum_filter(heatmap, size=NMS_KERNEL, mode="constant", cval=-np.inf)
     peaks = (heatmap == local_max) & (heatmap > threshold)
