@@ -6,11 +6,14 @@ Prints median milliseconds (CUDA-synchronized) for the networks alone and end to
 keypoint detection and host transfers), fp32 and fp16 autocast, and LightGlue per pair when
 pairs are matched one at a time or padded into batches (``match_many``), with fused
 (scaled-dot-product) and explicit attention, with the share of fp32's matches that fp16 keeps;
-asserts nothing.
+and batches whose padded sizes change from batch to batch (as in the loops and matching
+stages), the first pass over new shapes and a second over the same, with torch's choice of
+attention kernels and without cuDNN's (which plans per shape); asserts nothing.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
 from functools import partial
 
@@ -89,6 +92,7 @@ def main() -> None:
                 rows.append((f"LightGlue 2x2048 per pair, batches of 16, "
                              f"{'fp16 autocast' if half else 'fp32'}, explicit attention",
                              median_ms(partial(batched.match_many, pairs), repeats=5) / 32))
+        rows += changing_shapes(torch, g0, g1)
     print(f"keypoints {len(f0)}/{len(f1)}, matches {len(m32)}")
     reference = {tuple(m) for m in TorchLightGlueMatcher(LightGlueOptions(
         batch_pairs=1, device="cuda")).match(g0, g1).indices}
@@ -99,6 +103,59 @@ def main() -> None:
     print(f"| stage ({torch.cuda.get_device_name()}, torch backend) | median ms |\n|---|---|")
     for name, ms in rows:
         print(f"| {name} | {ms:.2f} |")
+
+
+@contextlib.contextmanager
+def patched(module, name, value):
+    old = getattr(module, name)
+    setattr(module, name, value)
+    try:
+        yield
+    finally:
+        setattr(module, name, old)
+
+
+def changing_shapes(torch, g0, g1, batches: int = 12, batch_pairs: int = 16) -> list:
+    """LightGlue per pair over ``batches`` batches whose sides have between 1536 and 2048
+    points (each batch padded to its own largest, as the stages do), timed once cold (every
+    shape new to the process) and once warm, fp32 and fp16, with torch's choice of attention
+    kernels and with cuDNN's left out (the matcher's fp16 default)."""
+    from cusfm_ros.core.features.lightglue import LightGlueOptions
+    from cusfm_ros.models import torch_backend
+    from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
+
+    rng = np.random.default_rng(0)
+
+    def subset(features, n):
+        keep = np.sort(rng.choice(len(features), n, replace=False))
+        return type(features)(features.keypoints_px[keep], features.scores[keep],
+                              features.descriptors[keep], features.image_size)
+
+    work = [[(subset(g0, int(rng.integers(1536, 2049))), subset(g1, int(rng.integers(1536,
+                                                                                    2049))))
+             for _ in range(batch_pairs)] for _ in range(batches)]
+    rows = []
+    for half in (False, True):
+        for label in ("torch's choice of attention kernels", "without cuDNN attention"):
+            # the matcher leaves cuDNN out in fp16; torch's own choice is the matcher with
+            # that step made a no-op
+            chosen = (contextlib.nullcontext if label.startswith("torch")
+                      else torch_backend.sdpa_kernel_without_cudnn)
+            matcher = TorchLightGlueMatcher(LightGlueOptions(batch_pairs=batch_pairs,
+                                                             half_precision=half,
+                                                             device="cuda"))
+            for rep in ("cold", "warm"):
+                torch.cuda.synchronize()
+                start = time.perf_counter()
+                with patched(torch_backend, "sdpa_kernel_without_cudnn", chosen):
+                    for pairs in work:
+                        matcher.match_many(pairs)
+                torch.cuda.synchronize()
+                ms = 1000 * (time.perf_counter() - start) / (batches * batch_pairs)
+                rows.append((f"LightGlue 1536-2048 points, {batches} batches of {batch_pairs} "
+                             f"of changing sizes, {'fp16' if half else 'fp32'}, {label}, "
+                             f"{rep} (per pair)", ms))
+    return rows
 
 
 if __name__ == "__main__":

@@ -496,6 +496,44 @@ def test_batched_lightglue_equals_one_pair_at_a_time_on_cuda(motorcycle):
     _batched_lightglue_equals_one_pair_at_a_time("cuda", motorcycle)
 
 
+def test_attention_without_cudnn_leaves_the_flags_as_they_were():
+    from cusfm_ros.models.torch_backend import sdpa_kernel_without_cudnn
+
+    flags = (torch.backends.cuda.cudnn_sdp_enabled, torch.backends.cuda.flash_sdp_enabled,
+             torch.backends.cuda.mem_efficient_sdp_enabled, torch.backends.cuda.math_sdp_enabled)
+    before = [flag() for flag in flags]
+    with sdpa_kernel_without_cudnn():
+        assert [flag() for flag in flags] == [False, True, True, True]
+    assert [flag() for flag in flags] == before
+
+
+@pytest.mark.gpu
+def test_half_precision_lightglue_on_cuda_keeps_the_fp32_matches(motorcycle):
+    """fp16 autocast without cuDNN's attention: batches of changing sizes keep 97 % of the
+    fp32 matches, and the attention flags are the process's own again afterwards."""
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    from cusfm_ros.core.features.lightglue import LightGlueOptions
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor, TorchLightGlueMatcher
+
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda"))
+    f0, f1 = (extractor.extract(image) for image in motorcycle)
+
+    def first(f, n):
+        return Features(f.keypoints_px[:n], f.scores[:n], f.descriptors[:n], f.image_size)
+
+    pairs = [(first(f0, n0), first(f1, n1)) for n0, n1 in ((2048, 2048), (1600, 2048),
+                                                           (2048, 1700), (1800, 1900))]
+    flags_before = torch.backends.cuda.cudnn_sdp_enabled()
+    found = {half: TorchLightGlueMatcher(LightGlueOptions(device="cuda", batch_pairs=2,
+                                                          half_precision=half)).match_many(pairs)
+             for half in (False, True)}
+    assert torch.backends.cuda.cudnn_sdp_enabled() == flags_before
+    for full, half in zip(found[False], found[True]):
+        common = {tuple(m) for m in full.indices} & {tuple(m) for m in half.indices}
+        assert len(full) > 300 and len(common) >= 0.97 * len(full)
+
+
 def test_torch_aliked_converts_on_the_device_as_prepare_image_does(rng):
     """The torch extractor converts images on its device; every accepted kind of image gives
     exactly the network input ``prepare_image`` makes on the CPU, and bad ones its errors."""

@@ -7,7 +7,9 @@ provider).
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
 
 import numpy as np
 
@@ -27,6 +29,15 @@ from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_bes
 from cusfm_ros.models.nets.xfeat import detect_and_describe
 
 logger = logging.getLogger(__name__)
+_SDPA_FLAGS_LOCK = threading.Lock()
+
+
+def sdpa_kernel_without_cudnn():
+    """``torch.nn.attention.sdpa_kernel`` with every attention kernel but cuDNN's."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    return sdpa_kernel([SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION,
+                        SDPBackend.MATH])
 
 
 def _device(name: str):
@@ -187,10 +198,21 @@ class TorchLightGlueMatcher:
         return filter_matches(scores[0].float().cpu().numpy(), o.filter_threshold)
 
     def _precision(self):
-        """fp16 autocast on a GPU when ``half_precision`` asks for it (thread-local: no global
-        state changes)."""
-        return self.torch.autocast("cuda", self.torch.float16, enabled=(
-            self.options.half_precision and self.device.type == "cuda"))
+        """fp16 autocast on a GPU when ``half_precision`` asks for it, with cuDNN's attention
+        kernel left out. In fp16 the loops stage ran 3x slower than in fp32 (H200, 2026-12-05)
+        although a fixed-size batch ran 3.8x faster: the stages pad each batch to its own
+        sizes, and cuDNN builds an execution plan for every new shape (55-400 ms each, as its
+        users report); ``bench/gpu_features.py`` times both choices over changing sizes.
+        fp32 never reaches cuDNN's kernel (it takes fp16/bf16 only)."""
+        torch = self.torch
+        stack = contextlib.ExitStack()
+        if not (self.options.half_precision and self.device.type == "cuda"):
+            return stack
+        # sdpa_kernel sets process-wide flags and restores them on exit: one pass at a time
+        stack.enter_context(_SDPA_FLAGS_LOCK)
+        stack.enter_context(sdpa_kernel_without_cudnn())
+        stack.enter_context(torch.autocast("cuda", torch.float16))
+        return stack
 
     @property
     def batch_pairs(self) -> int:
