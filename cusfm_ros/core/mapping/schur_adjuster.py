@@ -263,8 +263,8 @@ class SchurAdjuster:
                                      device=device)
                 for start in range(0, len(pairs.first), o.pair_chunk):
                     part = slice(start, start + o.pair_chunk)
-                    blocks.index_add_(0, pairs.block[part], -(
-                        y[pairs.first[part]] @ w[pairs.second[part]].transpose(1, 2)))
+                    blocks.index_add_(0, pairs.block[part], y[pairs.first[part]] @ w[
+                        pairs.second[part]].transpose(1, 2), alpha=-1)  # no negated copy
                 for index, value in zip(off_block, off_value):
                     blocks.index_add_(0, index, value)
                 blocks = blocks.view(num_cameras, num_cameras, 6, 6)
