@@ -135,7 +135,7 @@ def test_near_its_minimum_torch_takes_no_more_iterations_than_gtsam(seed):
     """The mapper's adjustments start near their minimum: the torch adjuster's first damping
     (1 / INITIAL_TRUST_RADIUS) is small enough for Gauss-Newton-like steps, so it needs no
     more iterations than gtsam (Ceres' first radius, 1e4, took 6 against 5 for seed 1; on the
-    simulated street 7 against 3) and stops at the same cost."""
+    simulated street 5 against 3) and stops at the same cost."""
     problem, _ = _problem(np.random.default_rng(seed))
     reference = BundleAdjuster(BundleOptions()).solve(problem, robust=False)
     ours = TorchBundleAdjuster(BundleOptions()).solve(problem, robust=False)

@@ -27,9 +27,9 @@ INITIAL_TRUST_RADIUS = 1e6
 """1 / the first Levenberg-Marquardt damping (Ceres' 1e4 is the adjuster's own default). The
 mapper's problems start near their minimum (pose-graph poses, triangulated points), where
 nearly undamped steps pay: on the simulated street (100 frames) the robust and the final
-adjustment took 8 and 3 iterations instead of 11 and 7, on KITTI 06's five 11+4+3+3+3
-instead of 11+5+4+3+4, to the same costs (7 digits). 1e7 stopped one robust adjustment early
-(a step that gained less than its tolerance on the way), so 1e6 it is."""
+adjustment took 5 and 3 iterations instead of 7 and 5 with 1e4 (11 and 7 before the adjuster
+widened its region tenfold per accepted step), KITTI 06's five 8+4+3+3+3 instead of 9+4+4+3+4,
+to the same costs (5 digits); 1e7 gave the same counts."""
 
 
 def supports(problem: BundleProblem, covariance: bool) -> bool:
