@@ -141,3 +141,37 @@ def test_observations_grouped_by_image_keep_row_order():
     groups = points.observations_by_image()
     assert list(groups) == ["a", "b", "c"]
     assert [groups[n].tolist() for n in "abc"] == [[1, 4], [0, 2], [3]]
+
+
+def test_map_points_file_round_trips_stores_image_indices_and_reads_the_old_layout(tmp_path):
+    from cusfm_ros.core.mapping.map_points import MapPoints, factorize
+    from cusfm_ros.errors import FormatError
+    from cusfm_ros.io.map_points_file import KEYS, read_map_points, write_map_points
+
+    rng = np.random.default_rng(0)
+    names = np.array(["front_stereo_right/17.png", "front_stereo_left/17.png",
+                      "front_stereo_left/9.png"])[rng.integers(0, 3, 400)]
+    points = MapPoints(rng.normal(size=(50, 3)), rng.integers(0, 50, 400), names,
+                       rng.integers(0, 2048, 400), rng.random((400, 2)) * 1000,
+                       rng.random(400).astype(np.float32))
+    # factorize is np.unique(return_inverse=True), without the string sort
+    for ours, numpy in zip(factorize(names), np.unique(names, return_inverse=True)):
+        np.testing.assert_array_equal(ours, numpy)
+    write_map_points(tmp_path / "points.npz", points)
+    with np.load(tmp_path / "points.npz") as data:  # names once, an index per observation
+        assert "obs_image" not in data.files and data["image_names"].tolist() == sorted(
+            set(names.tolist())) and data["obs_image_index"].dtype == np.int32
+    back = read_map_points(tmp_path / "points.npz")
+    for key in KEYS:
+        np.testing.assert_array_equal(getattr(back, key), getattr(points, key))
+    # files written before 2026-12-05 hold the names per observation
+    np.savez_compressed(tmp_path / "old.npz", **{k: getattr(points, k) for k in KEYS})
+    np.testing.assert_array_equal(read_map_points(tmp_path / "old.npz").obs_image, names)
+    arrays = {k: getattr(points, k) for k in KEYS if k != "obs_image"}
+    np.savez(tmp_path / "bad.npz", image_names=np.array(["a"]),
+             obs_image_index=np.full(400, 3, np.int32), **arrays)
+    with pytest.raises(FormatError, match="names an image that is not listed"):
+        read_map_points(tmp_path / "bad.npz")
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "points.npz").read_bytes()[:500])
+    with pytest.raises(FormatError, match="unreadable"):
+        read_map_points(tmp_path / "cut.npz")

