@@ -175,3 +175,22 @@ def test_map_points_file_round_trips_stores_image_indices_and_reads_the_old_layo
     (tmp_path / "cut.npz").write_bytes((tmp_path / "points.npz").read_bytes()[:500])
     with pytest.raises(FormatError, match="unreadable"):
         read_map_points(tmp_path / "cut.npz")
+
+
+def test_map_descriptors_halved_through_torch_round_as_numpy_does(monkeypatch):
+    import sys
+
+    import torch  # loaded, as in a GPU run
+
+    from cusfm_ros.pipeline.stages.map_store import _half
+
+    rng = np.random.default_rng(1)
+    values = np.concatenate([rng.normal(size=5000).astype(np.float32),
+                             np.float32([65504, 65520, 1e5, -1e5, 6e-8, 3e-8, 1e-10, 0.0,
+                                         -0.0, 2049.0, 2051.0, np.inf, -np.inf])]).reshape(-1, 1)
+    assert sys.modules.get("torch") is torch
+    with np.errstate(over="ignore"):  # 1e5 is inf in half precision
+        np.testing.assert_array_equal(_half(values), values.astype(np.float16))
+        monkeypatch.delitem(sys.modules, "torch")  # a CPU run: numpy's own
+        np.testing.assert_array_equal(_half(values), values.astype(np.float16))
+        assert _half(values).dtype == np.float16

@@ -8,6 +8,7 @@ features_section)`` is the stage on explicit inputs (map update builds its merge
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from dataclasses import replace
 
@@ -57,6 +58,16 @@ def refined_keyframes(keyframes: KeyframeSet, world_from_rig: Trajectory,
     return KeyframeSet(rig, ordered, "REFINED", keyframes.stereo_pairs, keyframes.extra)
 
 
+def _half(array: np.ndarray) -> np.ndarray:
+    """``array.astype(np.float16)``, through torch when the run has already loaded it (a GPU
+    run): the same rounding, 10x faster (0.04 against 0.37 s for 480k 128-D descriptors;
+    numpy converts element by element). torch is never imported for it."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return array.astype(np.float16)
+    return torch.from_numpy(np.ascontiguousarray(array, np.float32)).half().numpy()
+
+
 def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: MapPoints,
                     features, vocabulary: VocabularyTree, features_config: dict,
                     bow_rows: dict | None = None) -> PriorMap:
@@ -94,11 +105,11 @@ def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: 
             if sum(len(d) for d in pending.values()) >= QUANTIZE_BATCH:
                 quantize_pending()
         sel = order[offsets[k]:offsets[k + 1]]
-        descriptors.append(f.descriptors[points.obs_keypoint[sel]])
+        descriptors.append(_half(f.descriptors[points.obs_keypoint[sel]]))
     quantize_pending()
     rows = [rows[name] for name in names]
     obs_descriptor = (np.concatenate(descriptors) if descriptors
-                      else np.zeros((0, dim or vocabulary.dim), np.float32))
+                      else np.zeros((0, dim or vocabulary.dim), np.float16))
     bow = sp.vstack(rows).tocsr() if rows else sp.csr_matrix((0, vocabulary.num_words))
     sample_ids, stamps, _ = keyframes.sample_poses()
     if not np.array_equal(stamps, world_from_rig.stamps_ns):
@@ -106,7 +117,7 @@ def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: 
                          "mapping")
     return PriorMap(keyframes, points.points3d_in_world, points.obs_point[order],
                     points.obs_uv_px[order].astype(np.float32),
-                    obs_descriptor.astype(np.float16), offsets, vocabulary, bow, features_config,
+                    obs_descriptor, offsets, vocabulary, bow, features_config,
                     sample_ids, np.array(world_from_rig.world_from_body))
 
 
