@@ -238,9 +238,9 @@ def test_stages_run_on_explicit_inputs(loop_bag, tmp_path):
 
 
 def test_map_stage_stores_the_loops_stage_bows(loop_bag, tmp_path, monkeypatch):
-    """The map stage takes each keyframe's bag of words from loops/bows.npz instead of
-    quantizing again: the same map, byte for byte; rows of another vocabulary are not used,
-    and a damaged file is named."""
+    """The map stage takes each keyframe's bag of words from loops/bows.npz (else from
+    vocabulary/bows.npz) instead of quantizing again: the same map, byte for byte; rows of
+    another vocabulary are not used, and a damaged file is named."""
     from cusfm_ros.core.retrieval.database import ImageDatabase
     from cusfm_ros.errors import FormatError
     from cusfm_ros.io.bow_file import read_bows
@@ -262,7 +262,11 @@ def test_map_stage_stores_the_loops_stage_bows(loop_bag, tmp_path, monkeypatch):
         self, [quantized.append(d) or d for d in documents]))
     assert main(args + ["--steps", "map", "--overwrite"]) == 0
     assert quantized == []  # every row came from the loops stage
-    run.loop_bows.unlink()
+    run.loop_bows.unlink()  # loops skipped: the vocabulary stage's rows
+    assert main(args + ["--steps", "map"]) == 0
+    assert quantized == []
+    assert {p.name: p.read_bytes() for p in run.map_dir.iterdir()} == stored
+    run.vocabulary_bows.unlink()
     assert main(args + ["--steps", "map"]) == 0
     assert len(quantized) == len(keyframes.keyframes)
     assert {p.name: p.read_bytes() for p in run.map_dir.iterdir()} == stored
@@ -277,6 +281,52 @@ def test_map_stage_stores_the_loops_stage_bows(loop_bag, tmp_path, monkeypatch):
     run.loop_bows.write_bytes(b"not an npz")
     with pytest.raises(FormatError, match=r"bows.npz: not a bag-of-words file .*rerun the loops"):
         read_bows(run.loop_bows, vocabulary)
+
+
+def test_loops_stage_takes_the_vocabulary_stages_bows(loop_bag, tmp_path, monkeypatch):
+    """The vocabulary stage writes every image's bag of words (known from its IDF weights);
+    the loops stage builds its database from them instead of quantizing again: the same
+    loops and rows byte for byte; without the file it quantizes every keyframe."""
+    from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
+    from cusfm_ros.errors import FormatError
+    from cusfm_ros.io.bow_file import read_bows
+    from cusfm_ros.io.vocabulary_file import load_vocabulary
+    from cusfm_ros.pipeline.stores import load_keyframes
+
+    run = RunDir(tmp_path / "run")
+    args = ["map", str(loop_bag / "bag"), "--out", str(run.root), *FAST]
+    assert main(args + ["--steps", "keyframes", "features", "vocabulary", "loops"]) == 0
+    vocabulary = load_vocabulary(run.vocabulary)
+    keyframes = load_keyframes(run)
+    assert sorted(read_bows(run.vocabulary_bows, vocabulary)) == sorted(
+        k.image_name for k in keyframes.keyframes)
+    stored = {p: p.read_bytes() for p in (run.loops, run.loop_bows)}
+    assert json.loads(run.loops.read_text())["loops"]  # the fixture closes its loop
+    descended, quantize = [], VocabularyTree.quantize
+    monkeypatch.setattr(VocabularyTree, "quantize", lambda self, d, chunk=None: (
+        descended.append(len(d)), quantize(self, d, chunk))[1])
+    assert main(args + ["--steps", "loops", "--overwrite"]) == 0
+    assert descended == []  # every row from vocabulary/bows.npz
+    assert {p: p.read_bytes() for p in stored} == stored
+    run.vocabulary_bows.unlink()
+    assert main(args + ["--steps", "loops", "--overwrite"]) == 0
+    assert sum(descended) == sum(len(f) for f in _features(run, keyframes))
+    assert {p: p.read_bytes() for p in stored} == stored
+    run.vocabulary_bows.parent.mkdir(exist_ok=True)
+    run.vocabulary_bows.write_bytes(b"not an npz")
+    with pytest.raises(FormatError, match=r"bows.npz: not a bag-of-words file .*rerun the "
+                                          r"vocabulary stage"):
+        read_bows(run.vocabulary_bows, vocabulary)
+
+
+def _features(run, keyframes):
+    from cusfm_ros.pipeline.options import resolve_options
+    from cusfm_ros.pipeline.stores import open_features
+
+    options = resolve_options(None, {"features.extractor.name": "sift",
+                                     "features.extractor.sift.max_keypoints": 768})
+    with open_features(run, options) as store:
+        return [store.features(k.image_name).descriptors for k in keyframes.keyframes]
 
 
 def test_two_view_estimation_leaves_opencv_global_rng_alone(rng):

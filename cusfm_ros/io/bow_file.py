@@ -1,5 +1,6 @@
-"""Bag-of-words vectors of a run's keyframes (``loops/bows.npz``): the loops stage writes
-the TF-IDF rows it quantized, the map stage stores them instead of quantizing every keyframe
+"""Bag-of-words vectors of a run's keyframes: ``vocabulary/bows.npz`` (the vocabulary stage
+knows every image's words from its IDF weights) and ``loops/bows.npz`` (the loops stage's
+database); the loops stage and the map stage take them instead of quantizing every keyframe
 again. The file names the vocabulary it was made with (``vocabulary_key``); rows of another
 vocabulary are not used."""
 
@@ -40,20 +41,21 @@ def write_bows(path: str | os.PathLike, names: list[str], rows: list[sp.csr_matr
 def read_bows(path: str | os.PathLike, vocabulary: VocabularyTree) -> dict[str, sp.csr_matrix]:
     """Each image's row; empty when the file was made with another vocabulary."""
     path = Path(path)
+    stage = path.parent.name if path.parent.name in ("loops", "vocabulary") else "loops"
     try:
         with np.load(path) as arrays:
             if str(arrays["format"]) != FORMAT:
                 raise FormatError(path, None, f"format {arrays['format']}, expected {FORMAT}; "
-                                  "rerun the loops stage")
+                                  f"rerun the {stage} stage")
             if str(arrays["vocabulary"]) != vocabulary_key(vocabulary):
                 return {}
             matrix = sp.csr_matrix((arrays["data"], arrays["indices"], arrays["indptr"]),
                                    shape=tuple(arrays["shape"]))
             names = arrays["names"].tolist()
     except (OSError, ValueError, KeyError) as exc:
-        raise FormatError(path, None, f"not a bag-of-words file ({exc}); rerun the loops "
-                          "stage") from None
+        raise FormatError(path, None, f"not a bag-of-words file ({exc}); rerun the "
+                          f"{stage} stage") from None
     if matrix.shape != (len(names), vocabulary.num_words):
         raise FormatError(path, None, f"{matrix.shape[0]} rows of {matrix.shape[1]} words for "
-                          f"{len(names)} images; rerun the loops stage")
+                          f"{len(names)} images; rerun the {stage} stage")
     return {name: matrix[i] for i, name in enumerate(names)}

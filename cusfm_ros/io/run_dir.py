@@ -7,7 +7,7 @@ No stage spells a path literal; each asks its ``RunDir``. Layout:
                           export), initial_poses.tum
     features/features.h5  keypoints and descriptors per image
     matches/raw.h5        cache of raw matcher output per pair (loops, pose graph, matching)
-    vocabulary/           vocabulary.npz (+ birch_state.npz)
+    vocabulary/           vocabulary.npz, bows.npz (+ birch_state.npz)
     loops/loops.json      verified loop closures
     loops/bows.npz        bag-of-words vector of every keyframe (the map stage stores them)
     pose_graph/           poses.tum, summary.json
@@ -67,6 +67,10 @@ class RunDir:
     @property
     def vocabulary(self) -> Path:
         return self.root / "vocabulary" / "vocabulary.npz"
+
+    @property
+    def vocabulary_bows(self) -> Path:
+        return self.root / "vocabulary" / "bows.npz"
 
     @property
     def birch_state(self) -> Path:

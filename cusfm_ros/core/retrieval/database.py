@@ -48,6 +48,19 @@ class ImageDatabase:
         be streamed)."""
         return [self._vector(words) for words in self.vocabulary.quantize_stream(documents)]
 
+    def vectors(self, words: Iterable[np.ndarray]) -> list[sp.csr_matrix]:
+        """``bow`` of each image from its words (``VocabularyTree.quantize``)."""
+        return [self._vector(w) for w in words]
+
+    def add_rows(self, names: list[str], rows: list[sp.csr_matrix], stamps_ns: list[int]
+                 ) -> None:
+        """Images whose vectors are known (``bows`` of this vocabulary), quantized before."""
+        self.names.extend(names)
+        self.stamps_ns.extend(int(s) for s in stamps_ns)
+        self.positions_m.extend([None] * len(names))
+        self._rows.extend(rows)
+        self._matrix = None
+
     def add(self, name: str, descriptors: np.ndarray, stamp_ns: int,
             position_m: np.ndarray | None = None) -> None:
         self.add_many([name], [descriptors], [stamp_ns], [position_m])

@@ -123,15 +123,20 @@ class VocabularyTree:
             tree.set_idf(documents)
         return tree
 
-    def set_idf(self, documents, batch_descriptors: int = QUANTIZE_BATCH) -> None:
+    def set_idf(self, documents, batch_descriptors: int = QUANTIZE_BATCH,
+                keep_words: bool = False) -> list[np.ndarray] | None:
         """IDF = log(N / n_w) over the images (descriptor sets) the vocabulary is used for;
-        ``documents`` may be any iterable (streamed: ``quantize_stream``)."""
-        counts, images = np.zeros(self.num_words), 0
+        ``documents`` may be any iterable (streamed: ``quantize_stream``). ``keep_words``:
+        returns each image's words (``quantize`` of it), which it had to compute anyway."""
+        counts, images, kept = np.zeros(self.num_words), 0, []
         for words in self.quantize_stream(documents, batch_descriptors):
             images += 1
             if len(words):
                 counts[np.unique(words)] += 1
+            if keep_words:
+                kept.append(words)
         self.idf = np.log(max(images, 1) / np.maximum(counts, 1)).astype(np.float32)
+        return kept if keep_words else None
 
     # --------------------------------------------------------------------------- quantize
     def use_device(self, device: str) -> VocabularyTree:

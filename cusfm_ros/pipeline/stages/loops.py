@@ -20,7 +20,7 @@ from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.retrieval.database import ImageDatabase
 from cusfm_ros.core.retrieval.loops import LoopOptions, LoopRecord, verify_pair
 from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
-from cusfm_ros.io.bow_file import write_bows
+from cusfm_ros.io.bow_file import read_bows, write_bows
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import write_loops
 from cusfm_ros.io.vocabulary_file import load_vocabulary
@@ -49,12 +49,17 @@ def remember_matches(cache: FeatureStore | None, name0: str, name1: str, matches
 
 
 def loop_database(keyframes: KeyframeSet, features: dict[str, Features],
-                  vocabulary: VocabularyTree) -> ImageDatabase:
-    """Every keyframe in time order, quantized together."""
+                  vocabulary: VocabularyTree, rows: dict | None = None) -> ImageDatabase:
+    """Every keyframe in time order, quantized together; ``rows``: the bag-of-words rows of
+    this vocabulary already known (``vocabulary/bows.npz``), used when they cover every
+    keyframe."""
     frames = keyframes.images_in_time_order()
+    names = [k.image_name for k in frames]
     database = ImageDatabase(vocabulary)
-    database.add_many([k.image_name for k in frames],
-                      [features[k.image_name].descriptors for k in frames],
+    if rows and all(name in rows for name in names):
+        database.add_rows(names, [rows[name] for name in names], [k.stamp_ns for k in frames])
+        return database
+    database.add_many(names, [features[name].descriptors for name in names],
                       [k.stamp_ns for k in frames])
     return database
 
@@ -131,8 +136,9 @@ class LoopsStage(Stage):
     sections = {"loops": LoopOptions}
     reads = ("loops", "features.matcher", "seed")
     inputs = ("keyframes", "features", "vocabulary")
+    optional_inputs = ("vocabulary_bows",)
     outputs = ("loops", "loop_bows")
-    version = 2  # 2: loops/bows.npz
+    version = 3  # 2: loops/bows.npz; 3: rows from vocabulary/bows.npz
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
@@ -142,7 +148,9 @@ class LoopsStage(Stage):
         with open_features(run, options) as store, \
                 open_raw_matches(run, options, context.input_digests["features"]) as cache:
             features = {k.image_name: store.features(k.image_name) for k in keyframes.keyframes}
-            database = loop_database(keyframes, features, vocabulary)
+            known = (read_bows(run.vocabulary_bows, vocabulary)
+                     if run.vocabulary_bows.is_file() else None)
+            database = loop_database(keyframes, features, vocabulary, known)
             loops, counts = detect_loops(keyframes, features, vocabulary,
                                          LazyMatcher(options.features, options.device),
                                          options.loops, options.seed, cache,

@@ -125,7 +125,7 @@ class MapStoreStage(Stage):
     name = "map"
     reads = ("features", "vocabulary", "seed")
     inputs = ("keyframes", "features", "mapping_dir")
-    optional_inputs = ("vocabulary", "loop_bows")
+    optional_inputs = ("vocabulary", "loop_bows", "vocabulary_bows")
     outputs = ("map_dir",)
 
     def run(self, context: StageContext) -> dict:
@@ -142,8 +142,11 @@ class MapStoreStage(Stage):
             bow_rows = None
             if run.vocabulary.is_file():
                 vocabulary = load_vocabulary(run.vocabulary).use_device(options.device)
-                if run.loop_bows.is_file():  # the loops stage quantized every keyframe
-                    bow_rows = read_bows(run.loop_bows, vocabulary)
+                # the loops stage's rows, else the vocabulary stage's (loops skipped)
+                for known in (run.loop_bows, run.vocabulary_bows):
+                    if known.is_file():
+                        bow_rows = read_bows(known, vocabulary)
+                        break
             else:  # the vocabulary stage was skipped: localization still needs one
                 vocabulary, _ = build_vocabulary(
                     [store.features(k.image_name).descriptors for k in keyframes.keyframes],

@@ -1,6 +1,6 @@
 """Stage ``vocabulary``: the run's own descriptors -> ``vocabulary/vocabulary.npz``
 (hierarchical k-means, or BIRCH, which also keeps ``birch_state.npz`` for
-``cusfm vocab extend``).
+``cusfm vocab extend``) and ``vocabulary/bows.npz``, every image's bag of words.
 
 ``build_vocabulary(documents, options, seed)`` is the stage on explicit inputs.
 """
@@ -14,8 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from cusfm_ros.core.retrieval.birch import BirchOptions, BirchVocabularyBuilder
+from cusfm_ros.core.retrieval.database import ImageDatabase
 from cusfm_ros.core.retrieval.vocabulary import VocabularyOptions, VocabularyTree
 from cusfm_ros.errors import ConfigError, CusfmError
+from cusfm_ros.io.bow_file import write_bows
 from cusfm_ros.io.vocabulary_file import save_birch, save_vocabulary
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import open_features
@@ -54,10 +56,11 @@ def birch_builder(options: VocabularyStageOptions, seed: int = 0) -> BirchVocabu
 
 
 def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOptions,
-                     seed: int = 0, device: str = "cpu"
+                     seed: int = 0, device: str = "cpu", words_out: list | None = None
                      ) -> tuple[VocabularyTree, BirchVocabularyBuilder | None]:
     """A vocabulary over per-image descriptor arrays (and the BIRCH builder for ``birch``);
-    k-means on the GPU when ``device`` is one."""
+    k-means on the GPU when ``device`` is one. ``words_out`` receives each document's words,
+    which the IDF weights needed anyway."""
     total = sum(len(d) for d in documents)
     if not total:
         raise CusfmError("no descriptors to build a vocabulary from; run the features stage")
@@ -69,13 +72,18 @@ def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOption
     logger.info("vocabulary: %s over %d of %d descriptors from %d images (K=%d, L=%d)",
                 options.method, len(stacked), total, len(documents), options.branching,
                 options.depth)
+    builder = None
     if options.method == "kmeans":
-        return VocabularyTree.build(stacked, vocab_options, documents=documents,
-                                    device=device), None
-    builder = birch_builder(options, seed)
-    for document in documents:  # streamed: memory follows the CF entries
-        builder.insert(document)
-    return builder.solve(documents), builder
+        tree = VocabularyTree.build(stacked, vocab_options, device=device)
+    else:
+        builder = birch_builder(options, seed)
+        for document in documents:  # streamed: memory follows the CF entries
+            builder.insert(document)
+        tree = builder.solve()
+    words = tree.set_idf(documents, keep_words=words_out is not None)
+    if words_out is not None:
+        words_out.extend(words)
+    return tree, builder
 
 
 class VocabularyStage(Stage):
@@ -83,19 +91,25 @@ class VocabularyStage(Stage):
     sections = {"vocabulary": VocabularyStageOptions}
     reads = ("vocabulary", "seed")
     inputs = ("features",)
-    outputs = ("vocabulary",)
+    outputs = ("vocabulary", "vocabulary_bows")
     optional_outputs = ("birch_state",)
+    version = 2  # 2: vocabulary/bows.npz
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
         started = time.perf_counter()
         with open_features(run, options) as store:
-            documents = [store.features(name).descriptors for name in store.feature_names()]
+            names = store.feature_names()
+            documents = [store.features(name).descriptors for name in names]
+        words: list[np.ndarray] = []
         tree, builder = build_vocabulary(documents, options.vocabulary, options.seed,
-                                         options.device)
+                                         options.device, words)
         if builder is not None:
             save_birch(run.birch_state, builder)
         save_vocabulary(run.vocabulary, tree)
+        # every image's bag of words, known from the IDF's quantization: the loops stage
+        # (and the map stage, without loops) takes them instead of quantizing again
+        write_bows(run.vocabulary_bows, names, ImageDatabase(tree).vectors(words), tree)
         logger.info("vocabulary: %d words in %.1f s -> %s", tree.num_words,
                     time.perf_counter() - started, run.vocabulary)
         return {"words": tree.num_words, "descriptors": int(min(
