@@ -272,3 +272,14 @@ def test_images_quantized_together_get_their_own_words(rng, kind):
     assert many.names == one.names and many.stamps_ns == one.stamps_ns
     with pytest.raises(VocabularyError, match="dimension 8 but the vocabulary was built for"):
         tree.quantize_many([points[:3], np.zeros((2, 8), np.float32)])
+
+
+def test_sampled_training_rows_equal_those_of_the_concatenated_descriptors():
+    from cusfm_ros.pipeline.stages.vocabulary import _rows_of
+
+    rng = np.random.default_rng(0)
+    documents = [rng.random((int(n), 8), dtype=np.float32) for n in rng.integers(0, 50, 300)]
+    documents[5] = np.zeros((0, 8), np.float32)  # an image without keypoints
+    total = sum(len(d) for d in documents)
+    rows = np.random.default_rng(1).choice(total, total // 3, replace=False)
+    np.testing.assert_array_equal(_rows_of(documents, rows), np.concatenate(documents)[rows])

@@ -55,6 +55,22 @@ def birch_builder(options: VocabularyStageOptions, seed: int = 0) -> BirchVocabu
                                   _tree_options(options, seed))
 
 
+def _rows_of(documents: list[np.ndarray], rows: np.ndarray) -> np.ndarray:
+    """``np.concatenate(documents)[rows]`` without the concatenation (1.2M SIFT descriptors,
+    630 MB and 1.5 s at 300 street frames, for the 300k rows sampled from them)."""
+    offsets = np.cumsum([0] + [len(d) for d in documents])
+    document = np.searchsorted(offsets, rows, side="right") - 1
+    out = np.empty((len(rows), documents[0].shape[1]),
+                   np.result_type(*{d.dtype for d in documents}))
+    order = np.argsort(document, kind="stable")
+    bounds = np.searchsorted(document[order], np.arange(len(documents) + 1))
+    for d, values in enumerate(documents):
+        at = order[bounds[d]:bounds[d + 1]]
+        if len(at):
+            out[at] = values[rows[at] - offsets[d]]
+    return out
+
+
 def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOptions,
                      seed: int = 0, device: str = "cpu", words_out: list | None = None
                      ) -> tuple[VocabularyTree, BirchVocabularyBuilder | None]:
@@ -65,9 +81,11 @@ def build_vocabulary(documents: list[np.ndarray], options: VocabularyStageOption
     if not total:
         raise CusfmError("no descriptors to build a vocabulary from; run the features stage")
     rng = np.random.default_rng(seed)
-    stacked = np.concatenate(documents)
-    if len(stacked) > options.max_descriptors:
-        stacked = stacked[rng.choice(len(stacked), options.max_descriptors, replace=False)]
+    if total > options.max_descriptors:
+        stacked = _rows_of(documents, rng.choice(total, options.max_descriptors,
+                                                 replace=False))
+    else:
+        stacked = np.concatenate(documents)
     vocab_options = _tree_options(options, seed)
     logger.info("vocabulary: %s over %d of %d descriptors from %d images (K=%d, L=%d)",
                 options.method, len(stacked), total, len(documents), options.branching,
