@@ -557,3 +557,29 @@ def test_torch_aliked_converts_on_the_device_as_prepare_image_does(rng):
         extractor.extract(np.zeros((40, 50), np.int32))
     with pytest.raises(FeatureError, match="finite values in"):
         extractor.extract(np.full((40, 50), 2.0))
+
+
+def test_images_extracted_on_threads_use_one_opencv_thread_each(tmp_path, motorcycle):
+    """SIFT on several threads at once: OpenCV's own pool stays out of each (it fought them
+    for the cores), and its setting comes back afterwards; one image at a time keeps it."""
+    import cv2
+
+    from cusfm_ros.io.feature_store import FeatureStore
+    from cusfm_ros.pipeline.stages.features import extract_features
+
+    class Spy(SiftExtractor):
+        seen: list = []
+
+        def extract(self, image, mask=None):
+            self.seen.append(cv2.getNumThreads())
+            return super().extract(image, mask)
+
+    before = cv2.getNumThreads()
+    images = [(f"{i}.png", motorcycle[i % 2]) for i in range(4)]
+    for threads, expected in ((2, 1), (1, before)):
+        Spy.seen = []
+        with FeatureStore(tmp_path / f"{threads}.h5", {}) as store:
+            extract_features(images, Spy(SiftOptions(max_keypoints=200)), store,
+                             threads=threads)
+        assert Spy.seen == [expected] * 4
+        assert cv2.getNumThreads() == before
