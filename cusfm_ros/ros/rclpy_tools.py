@@ -141,6 +141,13 @@ class Shutdown:
         except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
             if self.signal is None:
                 self.signal = signal.SIGINT
+        except Exception:
+            # rclpy's own handler (SIGINT, SIGTERM) may shut the context down between the
+            # check above and the executor's wait set, which then fails with an RCLError
+            # ("the given context is not valid") instead of ExternalShutdownException: that
+            # is the shutdown too. Anything while rclpy still runs is a real error.
+            if rclpy.ok():
+                raise
         if self.signal is None and not rclpy.ok():
             self.signal = signal.SIGINT
 
