@@ -144,7 +144,7 @@ def test_observations_grouped_by_image_keep_row_order():
 
 
 def test_map_points_file_round_trips_stores_image_indices_and_reads_the_old_layout(tmp_path):
-    from cusfm_ros.core.mapping.map_points import MapPoints, factorize
+    from cusfm_ros.core.mapping.map_points import MapPoints, factorize, lookup
     from cusfm_ros.errors import FormatError
     from cusfm_ros.io.map_points_file import KEYS, read_map_points, write_map_points
 
@@ -157,6 +157,10 @@ def test_map_points_file_round_trips_stores_image_indices_and_reads_the_old_layo
     # factorize is np.unique(return_inverse=True), without the string sort
     for ours, numpy in zip(factorize(names), np.unique(names, return_inverse=True)):
         np.testing.assert_array_equal(ours, numpy)
+    index = {"front_stereo_left/9.png": 4, "front_stereo_right/17.png": 7}
+    np.testing.assert_array_equal(lookup(names, index),
+                                  [index.get(n, -1) for n in names.tolist()])
+    assert lookup(np.zeros(0, str), index).tolist() == []
     write_map_points(tmp_path / "points.npz", points)
     with np.load(tmp_path / "points.npz") as data:  # names once, an index per observation
         assert "obs_image" not in data.files and data["image_names"].tolist() == sorted(

@@ -245,9 +245,8 @@ def test_map_stage_stores_the_loops_stage_bows(loop_bag, tmp_path, monkeypatch):
     from cusfm_ros.errors import FormatError
     from cusfm_ros.io.bow_file import read_bows
     from cusfm_ros.io.vocabulary_file import load_vocabulary
-    from cusfm_ros.pipeline.options import resolve_options
     from cusfm_ros.pipeline.stages.vocabulary import build_vocabulary
-    from cusfm_ros.pipeline.stores import load_keyframes, open_features
+    from cusfm_ros.pipeline.stores import load_keyframes
 
     run = RunDir(tmp_path / "run")
     args = ["map", str(loop_bag / "bag"), "--out", str(run.root), *FAST]
@@ -270,12 +269,8 @@ def test_map_stage_stores_the_loops_stage_bows(loop_bag, tmp_path, monkeypatch):
     assert main(args + ["--steps", "map"]) == 0
     assert len(quantized) == len(keyframes.keyframes)
     assert {p.name: p.read_bytes() for p in run.map_dir.iterdir()} == stored
-    options = resolve_options(None, {"features.extractor.name": "sift",
-                                     "features.extractor.sift.max_keypoints": 768})
-    with open_features(run, options) as store:
-        other, _ = build_vocabulary([store.features(k.image_name).descriptors
-                                     for k in keyframes.keyframes][:10], options.vocabulary,
-                                    seed=1)
+    other, _ = build_vocabulary(_descriptors(run, keyframes)[:10],
+                                _sift_options().vocabulary, seed=1)
     assert main(args + ["--steps", "loops"]) == 0
     assert read_bows(run.loop_bows, other) == {}
     run.loop_bows.write_bytes(b"not an npz")
@@ -310,7 +305,7 @@ def test_loops_stage_takes_the_vocabulary_stages_bows(loop_bag, tmp_path, monkey
     assert {p: p.read_bytes() for p in stored} == stored
     run.vocabulary_bows.unlink()
     assert main(args + ["--steps", "loops", "--overwrite"]) == 0
-    assert sum(descended) == sum(len(f) for f in _features(run, keyframes))
+    assert sum(descended) == sum(len(f) for f in _descriptors(run, keyframes))
     assert {p: p.read_bytes() for p in stored} == stored
     run.vocabulary_bows.parent.mkdir(exist_ok=True)
     run.vocabulary_bows.write_bytes(b"not an npz")
@@ -319,13 +314,18 @@ def test_loops_stage_takes_the_vocabulary_stages_bows(loop_bag, tmp_path, monkey
         read_bows(run.vocabulary_bows, vocabulary)
 
 
-def _features(run, keyframes):
+def _sift_options():
+    """The options of a run made with FAST."""
     from cusfm_ros.pipeline.options import resolve_options
+
+    return resolve_options(None, {"features.extractor.name": "sift",
+                                  "features.extractor.sift.max_keypoints": 768})
+
+
+def _descriptors(run, keyframes):
     from cusfm_ros.pipeline.stores import open_features
 
-    options = resolve_options(None, {"features.extractor.name": "sift",
-                                     "features.extractor.sift.max_keypoints": 768})
-    with open_features(run, options) as store:
+    with open_features(run, _sift_options()) as store:
         return [store.features(k.image_name).descriptors for k in keyframes.keyframes]
 
 
@@ -485,7 +485,6 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
     from cusfm_ros.io.pairs_file import read_pairs
     from cusfm_ros.io.tum import read_tum
     from cusfm_ros.io.vocabulary_file import load_vocabulary
-    from cusfm_ros.pipeline.options import resolve_options
     from cusfm_ros.pipeline.stages.loops import detect_loops
     from cusfm_ros.pipeline.stages.matching import match_pairs
     from cusfm_ros.pipeline.stages.pose_graph import optimize_pose_graph
@@ -495,8 +494,7 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
     assert main(["map", str(loop_bag / "bag"), "--out", str(run.root), "--cpu-threads", "3",
                  "--steps", "keyframes", "features", "vocabulary", "loops", "pose_graph",
                  "pairs", "matching", *FAST]) == 0
-    options = resolve_options(None, {"features.extractor.name": "sift",
-                                     "features.extractor.sift.max_keypoints": 768})
+    options = _sift_options()
     keyframes = load_keyframes(run)
     with open_features(run, options) as store:
         features = {k.image_name: store.features(k.image_name) for k in keyframes.keyframes}

@@ -41,7 +41,7 @@ def read_map_points(path: str | os.PathLike) -> MapPoints:
         if len(index) and (index.min() < 0 or index.max() >= len(names)):
             raise FormatError(path, None, "an observation names an image that is not listed",
                               "rerun the mapping stage")
-        arrays["obs_image"] = names[index] if len(index) else np.zeros(0, str)
+        arrays["obs_image"] = names[index]
     missing = [k for k in KEYS if k not in arrays]
     if missing:
         raise FormatError(path, None, f"missing arrays {missing}", "rerun the mapping stage")

@@ -23,6 +23,13 @@ def factorize(strings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return names[order], rank[first]
 
 
+def lookup(strings: np.ndarray, index: dict[str, int], missing: int = -1) -> np.ndarray:
+    """``index[s]`` of each row (``missing`` where absent), looked up once per distinct value
+    (``factorize``) rather than once per row."""
+    names, row_of = factorize(strings)
+    return np.array([index.get(n, missing) for n in names.tolist()], np.int64)[row_of]
+
+
 @dataclass
 class MapPoints:
     """Points ``points3d_in_world`` (P, 3) and their observations, one row per observation:

@@ -46,18 +46,18 @@ class ImageDatabase:
     def bows(self, documents: Iterable[np.ndarray]) -> list[sp.csr_matrix]:
         """``bow`` of each image, quantized together (``quantize_stream``: ``documents`` may
         be streamed)."""
-        return [self._vector(words) for words in self.vocabulary.quantize_stream(documents)]
+        return self.vectors(self.vocabulary.quantize_stream(documents))
 
     def vectors(self, words: Iterable[np.ndarray]) -> list[sp.csr_matrix]:
         """``bow`` of each image from its words (``VocabularyTree.quantize``)."""
         return [self._vector(w) for w in words]
 
-    def add_rows(self, names: list[str], rows: list[sp.csr_matrix], stamps_ns: list[int]
-                 ) -> None:
+    def add_rows(self, names: list[str], rows: list[sp.csr_matrix], stamps_ns: list[int],
+                 positions_m: list[np.ndarray | None] | None = None) -> None:
         """Images whose vectors are known (``bows`` of this vocabulary), quantized before."""
         self.names.extend(names)
         self.stamps_ns.extend(int(s) for s in stamps_ns)
-        self.positions_m.extend([None] * len(names))
+        self.positions_m.extend(positions_m if positions_m is not None else [None] * len(names))
         self._rows.extend(rows)
         self._matrix = None
 
@@ -68,11 +68,7 @@ class ImageDatabase:
     def add_many(self, names: list[str], descriptors: list[np.ndarray], stamps_ns: list[int],
                  positions_m: list[np.ndarray | None] | None = None) -> None:
         """``add`` of each image, quantized together."""
-        self.names.extend(names)
-        self.stamps_ns.extend(int(s) for s in stamps_ns)
-        self.positions_m.extend(positions_m if positions_m is not None else [None] * len(names))
-        self._rows.extend(self.bows(descriptors))
-        self._matrix = None
+        self.add_rows(names, self.bows(descriptors), stamps_ns, positions_m)
 
     def __len__(self) -> int:
         return len(self.names)

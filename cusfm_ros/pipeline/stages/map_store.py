@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.localization.prior_map import PriorMap
-from cusfm_ros.core.mapping.map_points import MapPoints, factorize
+from cusfm_ros.core.mapping.map_points import MapPoints, lookup
 from cusfm_ros.core.retrieval.database import ImageDatabase
 from cusfm_ros.core.retrieval.vocabulary import QUANTIZE_BATCH, VocabularyTree
 from cusfm_ros.core.trajectory import Trajectory
@@ -78,13 +78,11 @@ def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: 
     points)."""
     names = [k.image_name for k in keyframes.keyframes]
     index = {n: i for i, n in enumerate(names)}
-    observed, image_of_obs = factorize(points.obs_image)
-    unknown = set(observed.tolist()) - set(index)
-    if unknown:
+    obs_keyframe = lookup(points.obs_image, index)
+    if (obs_keyframe < 0).any():
+        unknown = set(points.obs_image[obs_keyframe < 0].tolist())
         raise CusfmError(f"map points observed in images that are not keyframes "
                          f"({sorted(unknown)[:3]}); rerun mapping")
-    obs_keyframe = np.array([index[n] for n in observed.tolist()], np.int64)[image_of_obs] \
-        if len(observed) else np.zeros(0, np.int64)
     order = np.lexsort((points.obs_keypoint, obs_keyframe))
     offsets = np.searchsorted(obs_keyframe[order], np.arange(len(names) + 1)).astype(np.int64)
     database = ImageDatabase(vocabulary)
