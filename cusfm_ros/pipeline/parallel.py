@@ -19,6 +19,7 @@ import signal
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from itertools import chain, islice
 from typing import TypeVar
 
 from cusfm_ros.errors import ConfigError
@@ -82,22 +83,47 @@ def _worker_process() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
-def process_map(function: Callable[[Item], Result], items: list[Item], processes: int = 0,
-                chunk: int = 8, minimum: int = 64) -> list[Result]:
-    """``[function(item) for item in items]`` on ``processes`` worker processes (0: every
-    core), in order. ``function`` must be importable (a module-level function) and the items
-    picklable. Fewer than ``minimum`` items, or one process, run here: starting workers costs
-    about a second. Workers are spawned, not forked: the caller may hold threads (BLAS pools,
-    a CUDA context) that a fork would copy in an unknown state."""
-    processes = min(thread_count(processes), max(1, len(items) // chunk))
-    if processes == 1 or len(items) < minimum:
-        return [function(item) for item in items]
+def _apply_all(function: Callable[[Item], Result], chunk: list[Item]) -> list[Result]:
+    return [function(item) for item in chunk]
+
+
+def process_map(function: Callable[[Item], Result], items: Iterable[Item], processes: int = 0,
+                chunk: int = 8, minimum: int = 64) -> Iterator[tuple[Item, Result]]:
+    """``(item, function(item))`` in the order of ``items``, computed on ``processes`` worker
+    processes (0: every core). ``items`` is consumed as the workers take chunks of it, so
+    the work starts while the caller still produces items (the pose graph matches loop
+    pairs on the GPU while the processes measure those matched before), with at most four
+    chunks per process in flight. ``function`` must be importable (a module-level function)
+    and the items picklable. Fewer than ``minimum`` items, or one process, run here:
+    starting workers costs about a second. Workers are spawned, not forked: the caller may
+    hold threads (BLAS pools, a CUDA context) that a fork would copy in an unknown state."""
+    processes = thread_count(processes)
+    iterator = iter(items)
+    head = list(islice(iterator, minimum))
+    if processes == 1 or len(head) < minimum:
+        for item in chain(head, iterator):
+            yield item, function(item)
+        return
     pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
                                initializer=_worker_process)
+    pending: deque = deque()
+    chunks = chain(_chunks(head, chunk), _chunks(iterator, chunk))
     try:
-        results = list(pool.map(function, items, chunksize=chunk))
-    except BaseException:
+        for part in chunks:
+            pending.append((part, pool.submit(_apply_all, function, part)))
+            while pending and (pending[0][1].done() or len(pending) >= 4 * processes):
+                done, future = pending.popleft()
+                yield from zip(done, future.result())
+        while pending:
+            done, future = pending.popleft()
+            yield from zip(done, future.result())
+    except BaseException:  # an error, Ctrl-C or a caller that stopped early
         pool.shutdown(wait=False, cancel_futures=True)
         raise
     pool.shutdown()
-    return results
+
+
+def _chunks(items: Iterable[Item], size: int) -> Iterator[list[Item]]:
+    iterator = iter(items)
+    while part := list(islice(iterator, size)):
+        yield part

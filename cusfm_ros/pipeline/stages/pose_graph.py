@@ -169,27 +169,32 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                                  lambda item, found: (*item[:4], found, item[5], True, item[7]))
     items = with_batched_matches(items, matcher, partner_pair,
                                  lambda item, found: (*item[:5], found, item[6], True))
-    measured_items, measurements = [], []
-    for _, item in ordered_map(missing_matches, items, threads):
-        edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm = item
-        if new_qm:
-            remember_matches(cache, query.image_name, match.image_name, matches_qm)
-        if new_pm:
-            remember_matches(cache, partner.image_name, match.image_name, matches_pm)
-        prior = keyframes.world_from_rig(match).inverse() * keyframes.world_from_rig(query)
-        measured_items.append(item)
-        measurements.append((
-            rig, LoopView(query.camera_name, features[query.image_name].keypoints_px),
-            LoopView(match.camera_name, features[match.image_name].keypoints_px),
-            matches_qm.indices,
-            LoopView(partner.camera_name, features[partner.image_name].keypoints_px)
-            if partner is not None else None,
-            matches_pm.indices if matches_pm is not None else None,
-            edge.two_view, prior, seed))
+    measured_items = []
+
+    def measurements():
+        """measure_loop's arguments per loop as its matches come (the item kept in
+        ``measured_items``), so the worker processes measure while later pairs are still
+        being matched."""
+        for _, item in ordered_map(missing_matches, items, threads):
+            edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm = item
+            if new_qm:
+                remember_matches(cache, query.image_name, match.image_name, matches_qm)
+            if new_pm:
+                remember_matches(cache, partner.image_name, match.image_name, matches_pm)
+            prior = keyframes.world_from_rig(match).inverse() * keyframes.world_from_rig(query)
+            measured_items.append(item)
+            yield (
+                rig, LoopView(query.camera_name, features[query.image_name].keypoints_px),
+                LoopView(match.camera_name, features[match.image_name].keypoints_px),
+                matches_qm.indices,
+                LoopView(partner.camera_name, features[partner.image_name].keypoints_px)
+                if partner is not None else None,
+                matches_pm.indices if matches_pm is not None else None,
+                edge.two_view, prior, seed)
+
     constraints, kinds, skipped = [], {}, []
-    for item, measured in zip(measured_items,
-                              process_map(_measure, measurements, threads)):
-        edge, query, match = item[:3]
+    for index, (_, measured) in enumerate(process_map(_measure, measurements(), threads)):
+        edge, query, match = measured_items[index][:3]
         if isinstance(measured, str):
             skipped.append(f"{edge.query_image} - {edge.match_image}: {measured}")
             continue
