@@ -9,7 +9,7 @@ import pytest
 from bagtools import START_NS, write_bag
 from cusfm_ros.cli.main import main
 from cusfm_ros.core.geometry import interpolate_poses
-from cusfm_ros.errors import BagError
+from cusfm_ros.errors import BagError, ConfigError
 from cusfm_ros.io.bags import messages as m
 from cusfm_ros.io.frames_meta import read_frames_meta
 from cusfm_ros.io.tum import read_tum
@@ -48,6 +48,35 @@ def test_poses_images_and_calibration_come_through(tmp_path, storage, compressed
             jpeg = np.frombuffer(bytes(m.compressed_image_msg(rgb, 0, "cam").data), np.uint8)
             rgb = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)[..., ::-1]
         assert np.array_equal(written[..., ::-1], rgb)
+
+
+def test_uncompressed_keyframe_images_hold_the_same_pixels(tmp_path):
+    """``image_format: bmp`` writes each 8-bit image as BMP with the bag's pixels; a 16-bit
+    image (which BMP cannot hold) stays PNG, its values intact; a format not offered is
+    named."""
+    def deep_first_image(msgtype, message, index):
+        if msgtype == m.IMAGE and index == 0:  # the first image as mono16
+            message.encoding, message.step = "mono16", message.width * 2
+            message.data = message.data[:message.width * message.height * 2].copy()
+
+    truth = write_bag(tmp_path / "bag", damage=deep_first_image)
+    result = extract_keyframes(tmp_path / "bag", tmp_path / "run" / "keyframes",
+                               KeyframeOptions(min_translation_m=0.0, min_rotation_deg=0.0,
+                                               image_format="bmp"))
+    keyframes = result.keyframe_set.keyframes
+    assert len(keyframes) == 12
+    first = truth["images_rgb"][0].tobytes()[:2 * 64 * 48]
+    for keyframe, rgb in zip(keyframes, truth["images_rgb"]):
+        path = result.directory / keyframe.image_name
+        written = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if keyframe is keyframes[0]:
+            assert path.suffix == ".png" and written.dtype == np.uint16
+            assert written.tobytes() == np.frombuffer(first, "<u2").reshape(48, 64).tobytes()
+        else:
+            assert path.suffix == ".bmp" and np.array_equal(written[..., ::-1], rgb)
+    with pytest.raises(ConfigError, match="keyframes.image_format must be one of png, bmp, "
+                                          "got 'jpg'"):
+        KeyframeOptions(image_format="jpg")
 
 
 def test_bare_mcap_file_and_tf_pose_source(tmp_path):
