@@ -52,7 +52,9 @@ def main() -> None:
 
     tensor = torch.from_numpy(image.astype(np.float32).transpose(2, 0, 1)[None] / 255).cuda()
     batch = tensor.repeat(16, 1, 1, 1)
-    rows = []
+    print(f"| stage ({torch.cuda.get_device_name()}, torch backend) | median ms |\n|---|---|",
+          flush=True)
+    rows = _Rows()  # each row printed as it is measured: a run cut short keeps its rows
     with torch.inference_mode():
         rows.append(("ALIKED dense net, batch 1",
                      median_ms(lambda: extractor.model.dense(tensor))))
@@ -92,7 +94,7 @@ def main() -> None:
                 rows.append((f"LightGlue 2x2048 per pair, batches of 16, "
                              f"{'fp16 autocast' if half else 'fp32'}, explicit attention",
                              median_ms(partial(batched.match_many, pairs), repeats=5) / 32))
-        rows += changing_shapes(torch, g0, g1)
+        changing_shapes(torch, g0, g1, rows)
     print(f"keypoints {len(f0)}/{len(f1)}, matches {len(m32)}")
     reference = {tuple(m) for m in TorchLightGlueMatcher(LightGlueOptions(
         batch_pairs=1, device="cuda")).match(g0, g1).indices}
@@ -100,9 +102,17 @@ def main() -> None:
         common = len(reference & {tuple(m) for m in found.indices})
         print(f"2x2048, batches of {batch_pairs}, half {half}: {len(found)} matches, {common} "
               f"of fp32 one at a time's {len(reference)}")
-    print(f"| stage ({torch.cuda.get_device_name()}, torch backend) | median ms |\n|---|---|")
-    for name, ms in rows:
-        print(f"| {name} | {ms:.2f} |")
+
+
+class _Rows(list):
+    def append(self, row) -> None:
+        super().append(row)
+        print(f"| {row[0]} | {row[1]:.2f} |", flush=True)
+
+    def __iadd__(self, rows):
+        for row in rows:
+            self.append(row)
+        return self
 
 
 @contextlib.contextmanager
@@ -115,11 +125,13 @@ def patched(module, name, value):
         setattr(module, name, old)
 
 
-def changing_shapes(torch, g0, g1, batches: int = 12, batch_pairs: int = 16) -> list:
+def changing_shapes(torch, g0, g1, rows: list, batches: int = 12, batch_pairs: int = 16
+                    ) -> None:
     """LightGlue per pair over ``batches`` batches whose sides have between 1536 and 2048
     points (each batch padded to its own largest, as the stages do), timed once cold (every
     shape new to the process) and once warm, fp32 and fp16, with torch's choice of attention
-    kernels and with cuDNN's left out (the matcher's fp16 default)."""
+    kernels and with cuDNN's left out (the matcher's fp16 default); rows appended to
+    ``rows``."""
     from cusfm_ros.core.features.lightglue import LightGlueOptions
     from cusfm_ros.models import torch_backend
     from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
@@ -134,7 +146,6 @@ def changing_shapes(torch, g0, g1, batches: int = 12, batch_pairs: int = 16) -> 
     work = [[(subset(g0, int(rng.integers(1536, 2049))), subset(g1, int(rng.integers(1536,
                                                                                     2049))))
              for _ in range(batch_pairs)] for _ in range(batches)]
-    rows = []
     for half in (False, True):
         for label in ("torch's choice of attention kernels", "without cuDNN attention"):
             # the matcher leaves cuDNN out in fp16; torch's own choice is the matcher with
@@ -155,7 +166,6 @@ def changing_shapes(torch, g0, g1, batches: int = 12, batch_pairs: int = 16) -> 
                 rows.append((f"LightGlue 1536-2048 points, {batches} batches of {batch_pairs} "
                              f"of changing sizes, {'fp16' if half else 'fp32'}, {label}, "
                              f"{rep} (per pair)", ms))
-    return rows
 
 
 if __name__ == "__main__":
