@@ -130,8 +130,8 @@ def changing_shapes(torch, g0, g1, rows: list, batches: int = 12, batch_pairs: i
     """LightGlue per pair over ``batches`` batches whose sides have between 1536 and 2048
     points (each batch padded to its own largest, as the stages do), timed once cold (every
     shape new to the process) and once warm, fp32 and fp16, with torch's choice of attention
-    kernels and with cuDNN's left out (the matcher's fp16 default); rows appended to
-    ``rows``."""
+    kernels and with cuDNN's left out (the matcher's fp16 default), and padded to multiples
+    of 256 points (shapes that come again); rows appended to ``rows``."""
     from cusfm_ros.core.features.lightglue import LightGlueOptions
     from cusfm_ros.models import torch_backend
     from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
@@ -146,26 +146,30 @@ def changing_shapes(torch, g0, g1, rows: list, batches: int = 12, batch_pairs: i
     work = [[(subset(g0, int(rng.integers(1536, 2049))), subset(g1, int(rng.integers(1536,
                                                                                     2049))))
              for _ in range(batch_pairs)] for _ in range(batches)]
-    for half in (False, True):
-        for label in ("torch's choice of attention kernels", "without cuDNN attention"):
-            # the matcher leaves cuDNN out in fp16; torch's own choice is the matcher with
-            # that step made a no-op
-            chosen = (contextlib.nullcontext if label.startswith("torch")
-                      else torch_backend.sdpa_kernel_without_cudnn)
-            matcher = TorchLightGlueMatcher(LightGlueOptions(batch_pairs=batch_pairs,
-                                                             half_precision=half,
-                                                             device="cuda"))
-            for rep in ("cold", "warm"):
-                torch.cuda.synchronize()
-                start = time.perf_counter()
-                with patched(torch_backend, "sdpa_kernel_without_cudnn", chosen):
-                    for pairs in work:
-                        matcher.match_many(pairs)
-                torch.cuda.synchronize()
-                ms = 1000 * (time.perf_counter() - start) / (batches * batch_pairs)
-                rows.append((f"LightGlue 1536-2048 points, {batches} batches of {batch_pairs} "
-                             f"of changing sizes, {'fp16' if half else 'fp32'}, {label}, "
-                             f"{rep} (per pair)", ms))
+    torch_choice, no_cudnn = "torch's choice of attention kernels", "without cuDNN attention"
+    for half, label, pad in ((False, torch_choice, 1), (False, no_cudnn, 1),
+                             (True, torch_choice, 1), (True, no_cudnn, 1),
+                             (True, torch_choice, 256), (True, no_cudnn, 256),
+                             (False, no_cudnn, 256)):
+        # the matcher leaves cuDNN out in fp16; torch's own choice is the matcher with
+        # that step made a no-op
+        chosen = (contextlib.nullcontext if label == torch_choice
+                  else torch_backend.sdpa_kernel_without_cudnn)
+        matcher = TorchLightGlueMatcher(LightGlueOptions(batch_pairs=batch_pairs,
+                                                         half_precision=half,
+                                                         pad_multiple=pad, device="cuda"))
+        for rep in ("cold", "warm"):
+            torch.cuda.synchronize()
+            start = time.perf_counter()
+            with patched(torch_backend, "sdpa_kernel_without_cudnn", chosen):
+                for pairs in work:
+                    matcher.match_many(pairs)
+            torch.cuda.synchronize()
+            ms = 1000 * (time.perf_counter() - start) / (batches * batch_pairs)
+            padding = f", padded to multiples of {pad}" if pad > 1 else ""
+            rows.append((f"LightGlue 1536-2048 points, {batches} batches of {batch_pairs} "
+                         f"of changing sizes, {'fp16' if half else 'fp32'}, {label}{padding}, "
+                         f"{rep} (per pair)", ms))
 
 
 if __name__ == "__main__":

@@ -466,6 +466,17 @@ def _batched_lightglue_equals_one_pair_at_a_time(device, motorcycle):
         np.testing.assert_allclose(ours.confidences, theirs.confidences, atol=1e-4)
     with pytest.raises(ConfigError, match="batch_pairs >= 1"):
         LightGlueOptions(batch_pairs=0)
+    # padded further, to multiples of 256 points (masked): the same matches
+    padded = TorchLightGlueMatcher(LightGlueOptions(device=device, batch_pairs=3,
+                                                    pad_multiple=256))
+    shapes = []
+    padded.model.register_forward_pre_hook(lambda _, args: shapes.append(args[0].shape[1]))
+    for ours, theirs in zip(padded.match_many(pairs), single):
+        np.testing.assert_array_equal(ours.indices, theirs.indices)
+        np.testing.assert_allclose(ours.confidences, theirs.confidences, atol=1e-4)
+    assert shapes and all(n % 256 == 0 for n in shapes)
+    with pytest.raises(ConfigError, match="pad_multiple must be >= 1, got 0"):
+        LightGlueOptions(pad_multiple=0)
     # a batch the device cannot hold is halved until it fits; one pair that does not is an error
     real, sizes = matcher._match_padded, []
 

@@ -253,13 +253,14 @@ class TorchLightGlueMatcher:
         return self._match_halving(pairs[:half]) + self._match_halving(pairs[half:])
 
     def _match_padded(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
-        """One pass over pairs padded to the largest side of each image, masks marking the
-        real points (``LightGlueNet.forward``; none on a side no pair pads); the mutual-best
-        filter runs on the device and only each point's partner, confidence and validity come
-        back."""
+        """One pass over pairs padded to the largest side of each image (rounded up to
+        ``pad_multiple``), masks marking the real points (``LightGlueNet.forward``; none on a
+        side no pair pads); the mutual-best filter runs on the device and only each point's
+        partner, confidence and validity come back."""
         torch = self.torch
         counts = np.array([(len(a), len(b)) for a, b in pairs])
-        size = counts.max(0)
+        multiple = self.options.pad_multiple
+        size = -(-counts.max(0) // multiple) * multiple
         batch = [[np.zeros((len(pairs), n, d), np.float32) for n in size]
                  for d in (2, self.descriptor_dim)]
         masks = [np.zeros((len(pairs), n), bool) for n in size]

@@ -33,6 +33,10 @@ class LightGlueOptions:
     half_precision: bool = False
     """The torch backend on a GPU runs the network under fp16 autocast (matrix products in
     half precision, softmaxes in fp32); elsewhere it has no effect."""
+    pad_multiple: int = 1
+    """The torch backend pads each batch's sides up to a multiple of this many points
+    (masked, so the matches are the same): the network then sees a few shapes again and
+    again instead of a new one per batch. 1: to the batch's largest side only."""
     device: str = "auto"
     threads: int = 0
 
@@ -41,6 +45,8 @@ class LightGlueOptions:
             raise ConfigError(f"LightGlue: filter_threshold must be in [0, 1), threads >= 0 and "
                               f"batch_pairs >= 1, got {self.filter_threshold}, {self.threads} "
                               f"and {self.batch_pairs}")
+        if self.pad_multiple < 1:
+            raise ConfigError(f"LightGlue: pad_multiple must be >= 1, got {self.pad_multiple}")
         for name in ("depth_confidence", "width_confidence"):
             value = getattr(self, name)
             if value != -1 and not 0 < value < 1:
