@@ -78,3 +78,76 @@ def test_entries_reach_the_file_once_per_flush_interval(tmp_path, rng, monkeypat
     with FeatureStore(tmp_path / "f.h5", CONFIG) as store:
         assert sorted(store.feature_names()) == [f"{i}.png" for i in range(6)]
         assert len(store.pairs()) == 6
+
+
+def test_matches_go_out_in_blocks_and_read_back_exactly(tmp_path, rng):
+    """Matches put within one flush interval are written as one block; every pair reads back
+    exactly (either order), a pair put again keeps its last matches, and a block cut short
+    (no complete flag) does not count."""
+    import h5py
+
+    def random_matches(n):
+        return Matches(rng.integers(0, 2048, (n, 2)), rng.random(n).astype(np.float32))
+
+    put = {(f"cam/{i}.png", f"cam/{i + 1}.png"): random_matches(i * 7) for i in range(40)}
+    with FeatureStore(tmp_path / "m.h5", CONFIG, flush_interval_s=1e9) as store:
+        for (a, b), m in put.items():
+            store.put_matches(a, b, m)
+        again = random_matches(3)
+        store.put_matches("cam/5.png", "cam/6.png", again)  # replaces the first put
+        put[("cam/5.png", "cam/6.png")] = again
+        assert store.has_matches("cam/5.png", "cam/6.png")  # before it reaches the file
+        np.testing.assert_array_equal(store.matches("cam/6.png", "cam/5.png").indices,
+                                      again.indices[:, ::-1])
+    with h5py.File(tmp_path / "m.h5", "r") as raw:
+        assert list(raw["match_blocks"]) == ["0"] and len(raw["matches"]) == 0
+        assert raw["match_blocks/0/indices"].shape == (sum(len(m) for m in put.values()), 2)
+    with FeatureStore(tmp_path / "m.h5", {}, read_only=True) as store:
+        assert sorted(store.pairs()) == sorted(put)
+        for (a, b), m in put.items():
+            ours = store.matches(a, b)
+            assert ours.indices.dtype == np.int64
+            np.testing.assert_array_equal(ours.indices, m.indices)
+            np.testing.assert_array_equal(ours.confidences, m.confidences)
+            np.testing.assert_array_equal(store.matches(b, a).indices, m.indices[:, ::-1])
+        assert not store.has_matches("cam/0.png", "cam/2.png")
+        with pytest.raises(CusfmError, match="no matches for cam/0.png - cam/2.png"):
+            store.matches("cam/0.png", "cam/2.png")
+    with h5py.File(tmp_path / "m.h5", "a") as raw:  # as if killed before the flag was set
+        raw["match_blocks/0"].attrs["complete"] = False
+    with FeatureStore(tmp_path / "m.h5", CONFIG) as store:
+        assert store.pairs() == []
+        store.put_matches("a.png", "b.png", random_matches(4))
+    with h5py.File(tmp_path / "m.h5", "r") as raw:
+        assert sorted(raw["match_blocks"]) == ["0", "1"]
+
+
+def test_format_1_stores_are_read_and_appended_to(tmp_path, rng):
+    """A store written before format 2 (a group per pair of matches) reads as it did; new
+    matches go to blocks beside its groups, and a pair put again replaces its old group's."""
+    import h5py
+
+    old = Matches(np.array([[0, 1], [2, 3]]), np.array([0.5, 0.25], np.float32))
+    with h5py.File(tmp_path / "old.h5", "w") as raw:
+        raw.attrs["format"] = "cusfm_features/1"
+        raw.attrs["config"] = FeatureStore(tmp_path / "x.h5", CONFIG).config
+        raw.create_group("features")
+        for i, (a, b) in enumerate([("l/1.png", "r/1.png"), ("l/1.png", "l/2.png")]):
+            group = raw.create_group("matches").create_group(f"k{i}") if i == 0 else \
+                raw["matches"].create_group(f"k{i}")
+            group.create_dataset("indices", data=old.indices + i)
+            group.create_dataset("confidences", data=old.confidences)
+            group.attrs["image0"], group.attrs["image1"] = a, b
+            group.attrs["complete"] = True
+    with FeatureStore(tmp_path / "old.h5", {}, read_only=True) as store:
+        np.testing.assert_array_equal(store.matches("r/1.png", "l/1.png").indices,
+                                      old.indices[:, ::-1])
+        assert store.pairs() == [("l/1.png", "r/1.png"), ("l/1.png", "l/2.png")]
+    new = Matches(np.array([[7, 8]]), np.array([0.75], np.float32))
+    with FeatureStore(tmp_path / "old.h5", CONFIG) as store:
+        store.put_matches("l/1.png", "l/2.png", new)
+        store.put_matches("l/2.png", "r/2.png", new)
+    with FeatureStore(tmp_path / "old.h5", {}, read_only=True) as store:
+        np.testing.assert_array_equal(store.matches("l/1.png", "r/1.png").indices, old.indices)
+        np.testing.assert_array_equal(store.matches("l/1.png", "l/2.png").indices, new.indices)
+        assert len(store.pairs()) == 3

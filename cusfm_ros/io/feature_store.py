@@ -4,14 +4,23 @@ Layout (h5py):
     /                      attrs: format, config (JSON of the extractor/matcher options)
     /features/<image>      keypoints_px (N, 2), scores (N,), descriptors (N, D);
                            attrs: image_size, complete
+    /match_blocks/<n>      the pairs matched in one flush interval, in bulk: pairs (UTF-8
+                           JSON of [image0, image1, count] per pair), indices (K, 2) int32 and
+                           confidences (K,) of all of them, one pair after the other; attrs:
+                           complete. A later block's pair replaces an earlier one's.
     /matches/<pair key>    indices (K, 2), confidences (K,); attrs: image0, image1, complete
+                           (one group per pair: the layout before format 2, still read)
 
 Image names may contain "/" (camera sub-folders); they are escaped so every entry is one group.
 An entry counts only once its ``complete`` flag is set (written last), so a run killed mid-write
 is resumed by redoing just the incomplete entry. Writes reach the file at least every
 ``flush_interval_s`` (and when the store closes, which an exception or Ctrl-C also does): an
 HDF5 flush per entry cost 2.5 ms, three times the write itself (2048 ALIKED features), so a
-kill -9 now loses at most that interval's entries. Opening a store made with another
+kill -9 now loses at most that interval's entries. Matches wait in memory until then and go
+out as one block: a group and two datasets per pair cost the stages' main thread 1.5-2.5 ms
+each on the GPU machine (a third of the matching stage's main thread at 300 frames), where
+the pairs are many and their matches small. A block read once stays in memory while the store
+is open. Opening a store made with another
 configuration raises, unless ``overwrite`` starts it afresh; a cache (``reset_on_mismatch``)
 starts afresh by itself, and ``recover`` replaces a file HDF5 cannot open (a kill mid-write).
 """
@@ -28,7 +37,10 @@ import numpy as np
 from cusfm_ros.core.features.types import Features, Matches
 from cusfm_ros.errors import CusfmError, FormatError
 
-FORMAT = "cusfm_features/1"
+FORMAT = "cusfm_features/2"
+READABLE_FORMATS = ("cusfm_features/1", FORMAT)
+"""Format 1 kept one group per pair of matches; its files are read and appended to (their
+new matches go to blocks)."""
 
 
 def _key(name: str) -> str:
@@ -37,10 +49,6 @@ def _key(name: str) -> str:
 
 def _unkey(key: str) -> str:
     return key.replace("%2F", "/").replace("%25", "%")
-
-
-def pair_key(image0: str, image1: str) -> str:
-    return f"{_key(image0)}|{_key(image1)}"
 
 
 class FeatureStore:
@@ -58,6 +66,10 @@ class FeatureStore:
         self.reset_on_mismatch = reset_on_mismatch
         self.read_only = read_only
         self._file = None
+        self._index: dict[tuple[str, str], tuple[str, int, int]] = {}
+        """(image0, image1) -> (block name, first row, rows); block "" is format 1's group."""
+        self._pending: dict[tuple[str, str], Matches] = {}
+        self._blocks: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def _open(self):
         import h5py
@@ -84,14 +96,15 @@ class FeatureStore:
             self._file = self._open()
         attrs = self._file.attrs
         if self.read_only:  # the runner's fingerprints tie a reader to its producer
-            if attrs.get("format") != FORMAT:
+            if attrs.get("format") not in READABLE_FORMATS:
                 self._file.close()
                 raise FormatError(self.path, None, "not a cusfm feature store",
                                   "rerun the stage that writes it with --overwrite")
+            self._load_index()
             return self
         if "format" not in attrs:
             attrs["format"], attrs["config"] = FORMAT, self.config
-        elif attrs.get("format") != FORMAT or attrs.get("config") != self.config:
+        elif attrs.get("format") not in READABLE_FORMATS or attrs.get("config") != self.config:
             stored = attrs.get("config")
             self._file.close()
             if self.reset_on_mismatch:
@@ -101,19 +114,67 @@ class FeatureStore:
                              " rerun the stage that writes it (--overwrite)")
         self._file.require_group("features")
         self._file.require_group("matches")
+        self._file.require_group("match_blocks")
+        self._load_index()
         return self
 
     def __exit__(self, *exc_info) -> None:
         if self._file is not None:
-            self._file.close()
-            self._file = None
+            try:
+                if not self.read_only:
+                    self._write_block()
+            finally:
+                self._file.close()
+                self._file = None
+                self._blocks.clear()
 
     def _written(self) -> None:
         """An entry is complete: flush it to the file once the interval has passed."""
         now = time.monotonic()
         if now - self._flushed_at >= self.flush_interval_s:
+            self._write_block()
             self._file.flush()
             self._flushed_at = now
+
+    def _load_index(self) -> None:
+        """Where each complete pair's matches are: format 1's groups, then the blocks in the
+        order they were written (a later one replaces a pair)."""
+        self._index.clear()
+        legacy = self._file.get("matches")
+        for key, group in (legacy.items() if legacy is not None else ()):
+            if group.attrs.get("complete", False):
+                self._index[(group.attrs["image0"], group.attrs["image1"])] = (key, 0, -1)
+        blocks = self._file.get("match_blocks")
+        for name in sorted(blocks, key=int) if blocks is not None else ():
+            block = blocks[name]
+            if not block.attrs.get("complete", False):
+                continue
+            start = 0
+            for image0, image1, count in json.loads(bytes(block["pairs"][()]).decode()):
+                self._index[(image0, image1)] = (name, start, count)
+                start += count
+
+    def _write_block(self) -> None:
+        """The matches put since the last block, as one more block."""
+        if not self._pending:
+            return
+        blocks = self._file["match_blocks"]
+        name = str(max((int(n) for n in blocks), default=-1) + 1)
+        items = list(self._pending.items())
+        group = blocks.create_group(name)
+        pairs = [[a, b, len(m)] for (a, b), m in items]
+        group.create_dataset("pairs", data=np.frombuffer(json.dumps(pairs).encode(), np.uint8))
+        group.create_dataset("indices", data=np.concatenate(
+            [m.indices.reshape(-1, 2) for _, m in items]).astype(np.int32))
+        group.create_dataset("confidences", data=np.concatenate(
+            [m.confidences for _, m in items]).astype(np.float32))
+        group.attrs["complete"] = True
+        self._file.attrs["format"] = FORMAT
+        start = 0
+        for (pair, _), (_, _, count) in zip(items, pairs):
+            self._index[pair] = (name, start, count)
+            start += count
+        self._pending.clear()
 
     # ---------------------------------------------------------------------------- features
     def has_features(self, name: str) -> bool:
@@ -146,32 +207,39 @@ class FeatureStore:
 
     # ----------------------------------------------------------------------------- matches
     def has_matches(self, image0: str, image1: str) -> bool:
-        root = self._file.get("matches")
-        group = root.get(pair_key(image0, image1)) if root is not None else None
-        return group is not None and bool(group.attrs.get("complete", False))
+        return (image0, image1) in self._pending or (image0, image1) in self._index
 
     def put_matches(self, image0: str, image1: str, matches: Matches) -> None:
-        root = self._file["matches"]
-        key = pair_key(image0, image1)
-        if key in root:
-            del root[key]
-        group = root.create_group(key)
-        group.create_dataset("indices", data=matches.indices.astype(np.int64).reshape(-1, 2))
-        group.create_dataset("confidences", data=matches.confidences.astype(np.float32))
-        group.attrs["image0"], group.attrs["image1"] = image0, image1
-        group.attrs["complete"] = True
+        """Keeps the matches until the next flush, then writes them with the others (a pair
+        put again replaces its matches)."""
+        self._pending.pop((image0, image1), None)  # keeps the put order
+        self._pending[(image0, image1)] = Matches(
+            np.asarray(matches.indices, np.int64).reshape(-1, 2),
+            np.asarray(matches.confidences, np.float32))
         self._written()
 
     def matches(self, image0: str, image1: str) -> Matches:
         """Matches of a pair; asking for (b, a) after storing (a, b) swaps the columns."""
-        if self.has_matches(image0, image1):
-            group = self._file["matches"][pair_key(image0, image1)]
-            return Matches(group["indices"][()], group["confidences"][()])
+        pair = (image0, image1)
+        if pair in self._pending:
+            return self._pending[pair]
+        if pair in self._index:
+            name, start, count = self._index[pair]
+            if count < 0:  # format 1: a group per pair
+                group = self._file["matches"][name]
+                return Matches(group["indices"][()].astype(np.int64),
+                               group["confidences"][()])
+            if name not in self._blocks:
+                block = self._file["match_blocks"][name]
+                self._blocks[name] = (block["indices"][()], block["confidences"][()])
+            indices, confidences = self._blocks[name]
+            return Matches(indices[start:start + count].astype(np.int64),
+                           confidences[start:start + count].copy())
         if self.has_matches(image1, image0):
             swapped = self.matches(image1, image0)
             return Matches(swapped.indices[:, ::-1].copy(), swapped.confidences)
         raise CusfmError(f"{self.path}: no matches for {image0} - {image1}; run matching")
 
     def pairs(self) -> list[tuple[str, str]]:
-        return [(g.attrs["image0"], g.attrs["image1"]) for g in self._file["matches"].values()
-                if g.attrs.get("complete", False)]
+        """Every pair with matches, stored ones first."""
+        return list(self._index) + [p for p in self._pending if p not in self._index]
