@@ -196,8 +196,9 @@ def test_per_layer_graphs_without_adaptivity_equal_the_full_graph(model_dir, fea
     assert result.layers_run == 9
     pieces = adaptive_matches(result, 0.1)
     np.testing.assert_array_equal(pieces.indices, full.indices)
-    # the pieces are traced graphs, the full one a dynamo graph: rounding differs
-    np.testing.assert_allclose(pieces.confidences, full.confidences, atol=1e-4)
+    # the pieces are traced graphs, the full one a dynamo graph: rounding differs, over nine
+    # layers by up to 1.3e-4 on these features (one confidence in 429)
+    np.testing.assert_allclose(pieces.confidences, full.confidences, atol=3e-4)
 
 
 def test_torch_backend_adapts_like_onnx(model_dir, features):
