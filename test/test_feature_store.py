@@ -133,8 +133,7 @@ def test_format_1_stores_are_read_and_appended_to(tmp_path, rng):
         raw.attrs["config"] = FeatureStore(tmp_path / "x.h5", CONFIG).config
         raw.create_group("features")
         for i, (a, b) in enumerate([("l/1.png", "r/1.png"), ("l/1.png", "l/2.png")]):
-            group = raw.create_group("matches").create_group(f"k{i}") if i == 0 else \
-                raw["matches"].create_group(f"k{i}")
+            group = raw.require_group("matches").create_group(f"k{i}")
             group.create_dataset("indices", data=old.indices + i)
             group.create_dataset("confidences", data=old.confidences)
             group.attrs["image0"], group.attrs["image1"] = a, b

@@ -67,7 +67,8 @@ class FeatureStore:
         self.read_only = read_only
         self._file = None
         self._index: dict[tuple[str, str], tuple[str, int, int]] = {}
-        """(image0, image1) -> (block name, first row, rows); block "" is format 1's group."""
+        """(image0, image1) -> (block name, first row, rows), or (group name, 0, -1) for a
+        format 1 group of one pair."""
         self._pending: dict[tuple[str, str], Matches] = {}
         self._blocks: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
