@@ -507,6 +507,74 @@ def test_batched_lightglue_equals_one_pair_at_a_time_on_cuda(motorcycle):
     _batched_lightglue_equals_one_pair_at_a_time("cuda", motorcycle)
 
 
+def _batched_aliked_equals_one_image_at_a_time(device, motorcycle):
+    """ALIKED's network on a batch of images (and detection over the batch at once) gives
+    each image the features it gets alone, masks included; one batch holds one size."""
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor
+
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=400, device=device))
+    left, right = motorcycle
+    flat = np.full_like(left, 90)  # no score above the threshold: the mean decides
+    images = [left, right, flat, right[::-1].copy()]
+    masks = [np.ones(left.shape[:2], np.uint8) for _ in images]
+    masks[1][:, :200] = 0
+    for batch_masks in (None, masks):
+        batched = extractor.extract_batch(images, batch_masks)
+        single = [extractor.extract(image, None if batch_masks is None else mask)
+                  for image, mask in zip(images, masks)]
+        assert len(batched[0]) == 400 and 0 < len(batched[2]) < 400
+        for ours, theirs in zip(batched, single):
+            assert len(ours) == len(theirs)
+            np.testing.assert_allclose(ours.keypoints_px, theirs.keypoints_px, atol=1e-3)
+            np.testing.assert_allclose(ours.scores, theirs.scores, atol=1e-4)
+            assert (ours.descriptors * theirs.descriptors).sum(1).min() > 0.9999
+    assert batched[1].keypoints_px[:, 0].min() >= 199.5  # masked columns left out
+    with pytest.raises(FeatureError, match="images of one size"):
+        extractor.extract_batch([left, left[:200]])
+
+
+def test_batched_aliked_equals_one_image_at_a_time_on_cpu(motorcycle):
+    _batched_aliked_equals_one_image_at_a_time("cpu", motorcycle)
+
+
+@pytest.mark.gpu
+def test_batched_aliked_equals_one_image_at_a_time_on_cuda(motorcycle):
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    _batched_aliked_equals_one_image_at_a_time("cuda", motorcycle)
+
+
+def test_features_stage_batches_images_of_one_size(tmp_path, motorcycle):
+    """An extractor with a batch size gets consecutive images of one size together, in
+    order, and a change of size closes a batch; every image's features are stored."""
+    from cusfm_ros.io.feature_store import FeatureStore
+    from cusfm_ros.pipeline.stages.features import extract_features
+
+    class Batched(SiftExtractor):
+        batch_size = 3
+        parallel_images = False  # extracted on the calling thread, as the networks are
+        batches: list = []
+
+        def extract_batch(self, images):
+            self.batches.append([image.shape for image in images])
+            return [self.extract(image) for image in images]
+
+    small = motorcycle[0][:200, :300].copy()
+    shapes = [motorcycle[0].shape] * 4 + [small.shape] * 2 + [motorcycle[1].shape]
+    images = [(f"{i}.png", motorcycle[0] if s == motorcycle[0].shape else small)
+              for i, s in enumerate(shapes)]
+    with FeatureStore(tmp_path / "f.h5", {}) as store:
+        counts = extract_features(images, Batched(SiftOptions(max_keypoints=100)), store,
+                                  threads=2)
+        assert [len(b) for b in Batched.batches] == [3, 1, 2, 1]
+        assert [s for b in Batched.batches for s in b] == shapes
+        assert counts["extracted"] == 7
+        for name, image in images:
+            expected = SiftExtractor(SiftOptions(max_keypoints=100)).extract(image)
+            np.testing.assert_array_equal(store.features(name).keypoints_px,
+                                          expected.keypoints_px)
+
+
 def test_attention_without_cudnn_leaves_the_flags_as_they_were():
     from cusfm_ros.models.torch_backend import sdpa_kernel_without_cudnn
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -24,7 +25,7 @@ from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, feature
                                            network_input, network_mask)
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
-from cusfm_ros.models.nets.aliked import detect_keypoints
+from cusfm_ros.models.nets.aliked import detect_keypoints_batch
 from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
 from cusfm_ros.models.nets.xfeat import detect_and_describe
 
@@ -61,44 +62,68 @@ class TorchAlikedExtractor:
         self.options = options
         self.device = _device(options.device)
         self.model = load_aliked().to(self.device)
+        self.batch_size = options.batch_size if self.device.type == "cuda" else 1
 
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
 
     def _network_input(self, image: np.ndarray):
-        """(1, 3, H, W) float32 RGB in [0, 1] on the device, as ``prepare_image`` makes it,
+        """(3, H, W) float32 RGB in [0, 1] on the device, as ``prepare_image`` makes it,
         converted there: the image crosses as its own dtype (uint8: a quarter of the bytes),
         and the CPU thread that feeds the GPU does no per-pixel work."""
         tensor = self.torch.from_numpy(np.ascontiguousarray(image)).to(self.device)
         tensor = tensor.float() / SCALE[image.dtype] if image.dtype != np.float32 else tensor
         if tensor.ndim == 2:
             tensor = tensor[..., None]
-        return tensor[..., :3].expand(-1, -1, 3).permute(2, 0, 1)[None].contiguous()
+        return tensor[..., :3].expand(-1, -1, 3).permute(2, 0, 1)
 
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
+        return self.extract_batch([image], None if mask is None else [mask])[0]
+
+    def extract_batch(self, images: Sequence[np.ndarray],
+                      masks: Sequence[np.ndarray] | None = None) -> list[Features]:
+        """Features of images of one size, their dense network run as one batch (the
+        stage passes ``options.batch_size`` at a time). One at a time, each image paid the
+        network's ~100 kernel launches and the host syncs of detection and of the copy back,
+        and the GPU idled between them."""
         torch = self.torch
-        image = checked_image(image, MIN_IMAGE_PX)
-        h, w = image.shape[:2]
+        images = [checked_image(image, MIN_IMAGE_PX) for image in images]
+        sizes = {image.shape[:2] for image in images}
+        if len(sizes) != 1:
+            raise FeatureError(f"extract_batch needs images of one size, got {sorted(sizes)}")
+        (h, w), = sizes
         if self.options.resize_max_px:
             raise ConfigError("the torch backend does not resize; use the ONNX backend")
-        if mask is not None and np.asarray(mask).shape[:2] != (h, w):
-            raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image is {(h, w)}")
+        if masks is not None:
+            for mask in masks:
+                if np.asarray(mask).shape[:2] != (h, w):
+                    raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image "
+                                       f"is {(h, w)}")
         o = self.options
         with torch.inference_mode():
-            scores, feature_map = self.model.dense(self._network_input(image))
-            allowed = None if mask is None else torch.from_numpy(
-                np.asarray(mask) > 0).to(self.device)
+            scores, feature_map = self.model.dense(
+                torch.stack([self._network_input(image) for image in images]))
+            allowed = None if masks is None else torch.from_numpy(
+                np.stack([np.asarray(mask) > 0 for mask in masks])).to(self.device)
             # detection stays on the device: the same algorithm as the numpy version
-            keypoints, kp_scores = detect_keypoints(scores, o.nms_radius, o.detection_threshold,
-                                                    o.max_keypoints, allowed=allowed)
+            detected = detect_keypoints_batch(scores, o.nms_radius, o.detection_threshold,
+                                              o.max_keypoints, allowed=allowed)
+            packed = [torch.cat([keypoints.float(), kp_scores.float()[:, None],
+                                 self.model.desc_head(feature_map[i:i + 1], keypoints).float()],
+                                dim=1)
+                      for i, (keypoints, kp_scores) in enumerate(detected) if len(keypoints)]
+            # one transfer back per batch
+            packed = torch.cat(packed).cpu().numpy() if packed else np.zeros((0, 3))
+        out, start = [], 0
+        for keypoints, _ in detected:
             if len(keypoints) == 0:
-                return Features.empty(self.descriptor_dim, (w, h))
-            descriptors = self.model.desc_head(feature_map, keypoints)
-            # one transfer back instead of three
-            packed = torch.cat([keypoints.float(), kp_scores.float()[:, None],
-                                descriptors.float()], dim=1).cpu().numpy()
-        return Features(packed[:, :2].copy(), packed[:, 2].copy(), packed[:, 3:].copy(),
-                        (w, h))
+                out.append(Features.empty(self.descriptor_dim, (w, h)))
+                continue
+            rows = packed[start:start + len(keypoints)]
+            start += len(keypoints)
+            out.append(Features(rows[:, :2].copy(), rows[:, 2].copy(), rows[:, 3:].copy(),
+                                (w, h)))
+        return out
 
 
 class TorchXFeatExtractor:

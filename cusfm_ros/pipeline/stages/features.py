@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cusfm_ros.core.features.types import Features
 from cusfm_ros.errors import CusfmError
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.pipeline.components import FeatureOptions, make_extractor
@@ -58,12 +59,32 @@ def extract_features(images: Sequence[tuple[str, str | Path | np.ndarray]], extr
         return extractor.extract(array) if in_threads else array
 
     progress = Progress("features", len(todo), "images")
+    batch_size = 1 if in_threads else getattr(extractor, "batch_size", 1)
+    batch: list[tuple[str, np.ndarray]] = []
+
+    def put(name: str, features: Features) -> None:
+        nonlocal keypoints
+        store.put_features(name, features)
+        keypoints += len(features)
+        progress.step()
+
+    def flush() -> None:
+        for (name, _), features in zip(batch, extractor.extract_batch([i for _, i in batch])):
+            put(name, features)
+        batch.clear()
+
     with _one_opencv_thread_per_image(in_threads and thread_count(threads) > 1):
         for (name, _), result in ordered_map(decode, todo, threads):
-            features = result if in_threads else extractor.extract(result)
-            store.put_features(name, features)
-            keypoints += len(features)
-            progress.step()
+            if batch_size == 1:
+                put(name, result if in_threads else extractor.extract(result))
+                continue
+            if batch and batch[0][1].shape != result.shape:  # a batch holds one image size
+                flush()
+            batch.append((name, result))
+            if len(batch) == batch_size:
+                flush()
+        if batch:
+            flush()
     return {"images": len(images), "extracted": len(todo), "keypoints_extracted": keypoints}
 
 
