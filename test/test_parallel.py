@@ -2,6 +2,9 @@
 items' order, and processes that start on the items while the caller still produces them."""
 
 import math
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -50,3 +53,40 @@ def test_process_map_stops_its_workers_when_the_caller_stops_early():
     results = process_map(math.factorial, range(100), 2, chunk=4, minimum=8)
     assert next(results) == (0, 1)
     results.close()  # the pool is shut down, pending chunks cancelled; nothing hangs
+
+
+def _pid_after_sleep(folder: str) -> int:
+    (Path(folder) / str(os.getpid())).touch()
+    time.sleep(0.2)
+    return os.getpid()
+
+
+def test_workers_end_when_the_process_that_owns_them_is_killed(tmp_path):
+    """A caller killed outright (SIGKILL, or a SIGTERM it does not handle) cannot shut its
+    pool down: its workers notice it is gone and end instead of waiting forever."""
+    script = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+              "from test_parallel import _pid_after_sleep\n"
+              "from cusfm_ros.pipeline.parallel import process_map\n"
+              f"for _ in process_map(_pid_after_sleep, [{str(tmp_path)!r}] * 400, 2, chunk=1,"
+              " minimum=2): pass\n")
+    owner = subprocess.Popen([sys.executable, "-c", script])
+    deadline = time.monotonic() + 60
+    while len(list(tmp_path.iterdir())) < 2:
+        assert time.monotonic() < deadline and owner.poll() is None, "no worker started"
+        time.sleep(0.1)
+    workers = [int(p.name) for p in tmp_path.iterdir()]
+    owner.kill()
+    owner.wait()
+    deadline = time.monotonic() + 15
+    while any(_alive(pid) for pid in workers):
+        assert time.monotonic() < deadline, f"workers {workers} outlived their owner"
+        time.sleep(0.2)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as handle:  # a zombie (exited, not yet reaped) is gone
+        return handle.read().split(") ")[-1][0] != "Z"

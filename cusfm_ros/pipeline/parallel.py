@@ -16,6 +16,8 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
+import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
@@ -74,13 +76,27 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], threa
             yield done, future.result()
 
 
-def _worker_process() -> None:
-    """A worker process leaves Ctrl-C and SIGTERM to its parent, and uses one BLAS thread."""
+def _worker_process(owner: int) -> None:
+    """A worker process leaves Ctrl-C and SIGTERM to its parent, uses one BLAS thread, and
+    ends when the process that owns the pool (``owner``) is gone: one killed outright, or
+    by a SIGTERM it does not handle, left its workers waiting for work forever."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")
+    threading.Thread(target=_exit_without, args=(owner,), daemon=True).start()
+
+
+def _exit_without(owner: int) -> None:
+    while True:
+        time.sleep(0.5)
+        try:
+            os.kill(owner, 0)
+        except ProcessLookupError:
+            os._exit(1)
+        except PermissionError:  # the pid was reused by another user's process
+            os._exit(1)
 
 
 def _apply_all(function: Callable[[Item], Result], chunk: list[Item]) -> list[Result]:
@@ -95,8 +111,9 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
     pairs on the GPU while the processes measure those matched before), with at most four
     chunks per process in flight. ``function`` must be importable (a module-level function)
     and the items picklable. Fewer than ``minimum`` items, or one process, run here:
-    starting workers costs about a second. Workers are spawned, not forked: the caller may
-    hold threads (BLAS pools, a CUDA context) that a fork would copy in an unknown state."""
+    starting workers costs about a second. Workers are never forked from the caller, which
+    may hold threads (BLAS pools, a CUDA context) that a fork would copy in an unknown state:
+    they come from a fork server (``_process_context``)."""
     processes = thread_count(processes)
     iterator = iter(items)
     head = list(islice(iterator, minimum))
@@ -104,8 +121,8 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
         for item in chain(head, iterator):
             yield item, function(item)
         return
-    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_worker_process)
+    pool = ProcessPoolExecutor(processes, mp_context=_process_context(function),
+                               initializer=_worker_process, initargs=(os.getpid(),))
     pending: deque = deque()
     chunks = chain(_chunks(head, chunk), _chunks(iterator, chunk))
     try:
@@ -121,6 +138,19 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
         pool.shutdown(wait=False, cancel_futures=True)
         raise
     pool.shutdown()
+
+
+def _process_context(function: Callable) -> multiprocessing.context.BaseContext:
+    """Where the workers come from: forked from a fork server (a fresh interpreter, started
+    once per run, that has imported the main module and ``function``'s module), else
+    spawned. Spawned, every worker imported them itself: 16 workers x ~2 s of imports
+    (numpy, scipy, OpenCV, the CLI) on the cores the GPU's feeding thread needed."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    # no effect once the server runs (it keeps what it imported at its start)
+    context.set_forkserver_preload(["__main__", function.__module__])
+    return context
 
 
 def _chunks(items: Iterable[Item], size: int) -> Iterator[list[Item]]:
