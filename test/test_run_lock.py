@@ -75,7 +75,10 @@ def test_out_that_holds_someone_elses_files_is_refused_untouched(tmp_path, capsy
     assert "no such bag" in capsys.readouterr().err  # an empty folder is fine
 
 
-def test_ctrl_c_exits_130_with_one_line_and_a_resumable_run(tmp_path, models_ready):
+@pytest.mark.parametrize("signum, status, word", [(signal.SIGINT, 130, "interrupted"),
+                                                   (signal.SIGTERM, 143, "terminated")])
+def test_ctrl_c_or_sigterm_exits_with_one_line_and_a_resumable_run(tmp_path, models_ready,
+                                                                    signum, status, word):
     import json
 
     from cusfm_ros.sim.generator import SimulationOptions, Simulator
@@ -94,11 +97,11 @@ def test_ctrl_c_exits_130_with_one_line_and_a_resumable_run(tmp_path, models_rea
     while not (run / "stages" / "features.json").is_file() and time.monotonic() < deadline:
         time.sleep(0.05)
     time.sleep(0.3)
-    process.send_signal(signal.SIGINT)
+    process.send_signal(signum)
     err = process.communicate(timeout=60)[1]
-    assert process.returncode == 130, err
-    last = [line for line in err.splitlines() if "interrupted" in line]
-    assert last == ["cusfm map: interrupted; nothing half-written was left, rerun the same "
+    assert process.returncode == status, err
+    last = [line for line in err.splitlines() if word in line]
+    assert last == [f"cusfm map: {word}; nothing half-written was left, rerun the same "
                     "command to resume"] and "Traceback" not in err
     assert not list(run.rglob("*.tmp")) and not (run / "poses.tum").exists()
     records = {p.stem: json.loads(p.read_text())["status"]

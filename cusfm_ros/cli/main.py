@@ -7,14 +7,18 @@ Each subcommand module exposes ``add_parser(subparsers)`` (argument parsing) and
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 
 from cusfm_ros import __version__
 from cusfm_ros.cli import (calibrate, convert, demo, evaluate, fleet, inspect, keyframes,
                            localize, map, map_update, match, models, report, simulate, vocab)
 from cusfm_ros.errors import CusfmError
+from cusfm_ros.pipeline.worker import CANCELLED_STATUS, Cancelled
 
 SUBCOMMANDS = (simulate, convert, inspect, keyframes, map, map_update, fleet, localize,
                calibrate, match, models, vocab, evaluate, report, demo)
@@ -44,19 +48,41 @@ def configure_logging(verbose: bool, quiet: bool = False) -> None:
                         datefmt="%H:%M:%S", stream=sys.stderr)
 
 
+@contextlib.contextmanager
+def _sigterm_unwinds():
+    """SIGTERM (a supervisor, ``timeout``, ``docker stop``) unwinds the command as Ctrl-C
+    does, so the run records where it stopped and its worker processes are shut down;
+    without a handler the process died where it stood. Only the main thread can set it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminated(signum, frame):
+        raise Cancelled()
+
+    previous = signal.signal(signal.SIGTERM, terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(args.verbose, args.quiet)
     try:
-        return int(args.run(args) or 0)
+        with _sigterm_unwinds():
+            return int(args.run(args) or 0)
     except CusfmError as exc:
         print(f"cusfm {args.command}: error: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:  # Ctrl-C: every atomic write in progress was dropped
-        print(f"cusfm {args.command}: interrupted; nothing half-written was left, rerun the "
-              "same command to resume", file=sys.stderr)
-        return 130
+    except (KeyboardInterrupt, Cancelled) as exc:  # every atomic write in progress dropped
+        print(f"cusfm {args.command}: "
+              f"{'interrupted' if isinstance(exc, KeyboardInterrupt) else 'terminated'}; "
+              "nothing half-written was left, rerun the same command to resume",
+              file=sys.stderr)
+        return 130 if isinstance(exc, KeyboardInterrupt) else CANCELLED_STATUS
 
 
 if __name__ == "__main__":
