@@ -82,6 +82,40 @@ def test_tracks_equal_a_plain_greedy_union_find(rng):
     assert found == expected
 
 
+def test_tracks_rebuilt_in_groups_on_worker_processes_are_the_same(rng, monkeypatch):
+    """The inconsistent components rebuilt in groups, on two worker processes: the same
+    tracks, in the same order, and the same rejections as one pass over every match."""
+    from cusfm_ros.core.mapping import tracks as tracks_module
+    from cusfm_ros.pipeline.parallel import process_map
+
+    matches, confidences = [], []
+    for i in range(80):  # eight blocks of ten images: at least eight components
+        for j in range(i + 1, min(i + 3, 10 * (i // 10 + 1))):
+            a = rng.choice(50, 30, replace=False)
+            b = a.copy()
+            wrong = rng.random(30) < 0.15
+            b[wrong] = rng.integers(0, 50, wrong.sum())
+            matches.append((i, j, np.stack([a, b], 1)))
+            confidences.append(rng.random(30))
+    one_pass = build_tracks([50] * 80, matches, confidences=confidences)
+    monkeypatch.setattr(tracks_module, "PARALLEL_MIN_EDGES", 0)
+
+    sizes = []
+
+    def on_processes(function, items):
+        items = list(items)
+        sizes.append(len(items))
+        return (result for _, result in process_map(function, items, 2, chunk=1, minimum=2))
+
+    for map_groups, groups in ((map, 5), (on_processes, 7)):
+        grouped = build_tracks([50] * 80, matches, confidences=confidences,
+                               map_groups=map_groups, groups=groups)
+        assert one_pass.rejected > 50 and grouped.rejected == one_pass.rejected
+        for field in ("image", "keypoint", "offsets"):
+            np.testing.assert_array_equal(getattr(grouped, field), getattr(one_pass, field))
+    assert sizes and sizes[0] >= 5  # several groups went to the processes
+
+
 def views(rng, count=5):
     """Cameras on an arc around the origin, looking at it (cam_from_world)."""
     poses = []

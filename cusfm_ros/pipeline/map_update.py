@@ -286,7 +286,7 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
         tick = time.perf_counter()
         output = map_keyframes(merged_set, keypoints, pair_matches, start, measured, mapping,
                                options.refinement, options.bundle_adjustment, options.frame_type,
-                               options.device)
+                               options.device, options.cpu_threads)
         timings["bundle_adjustment_s"] = time.perf_counter() - tick
         world_from_rig = output.world_from_rig.world_from_body.copy()
         points, merge_counts = output.points, {}

@@ -152,14 +152,17 @@ def view_graph_components(num_images: int, edges: list[tuple[int, int]]) -> list
 def build_observations(keyframes: KeyframeSet, structure: PoseStructure,
                        keypoints_px: list[np.ndarray],
                        pair_matches: list[tuple[int, int, Matches]],
-                       rolling_shutter_line_delay_s: float = 0.0) -> Observations:
+                       rolling_shutter_line_delay_s: float = 0.0, map_groups=None,
+                       groups: int = 1) -> Observations:
     """Tracks over the verified matches (image indices of ``structure.images``), as
-    normalized observations; rays too far off the optical axis (fisheye edges) are dropped."""
+    normalized observations; rays too far off the optical axis (fisheye edges) are dropped.
+    ``map_groups`` and ``groups``: as ``build_tracks`` takes them."""
     images = structure.images
     used = [(i, j, m.indices) for i, j, m in pair_matches if len(m)]
     components = view_graph_components(len(images), [(i, j) for i, j, _ in used])
     tracks = build_tracks([len(k) for k in keypoints_px], used,
-                          confidences=[m.confidences for _, _, m in pair_matches if len(m)])
+                          confidences=[m.confidences for _, _, m in pair_matches if len(m)],
+                          map_groups=map_groups, groups=groups)
     # one gather over every image's keypoints (a mask per image was quadratic: 2000 images
     # x 1.7M observations at 1000 frames)
     first_keypoint = np.r_[0, np.cumsum([len(k) for k in keypoints_px])].astype(np.int64)
