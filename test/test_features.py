@@ -627,7 +627,7 @@ def test_torch_aliked_converts_on_the_device_as_prepare_image_does(rng):
               rng.integers(0, 65536, (40, 50, 3), dtype=np.uint16),
               rng.random((40, 50)), rng.random((40, 50, 3)).astype(np.float32)]
     for image in images:
-        expected = prepare_image(image).transpose(2, 0, 1)[None]
+        expected = prepare_image(image).transpose(2, 0, 1)
         got = extractor._network_input(image)
         assert got.dtype == torch.float32
         np.testing.assert_array_equal(got.numpy(), expected)
