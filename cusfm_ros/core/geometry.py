@@ -131,6 +131,10 @@ def invert_matrices(matrices: np.ndarray) -> np.ndarray:
     return out
 
 
+_EYE3 = np.eye(3)
+_ORTHONORMAL_TOLERANCE = 1e-6 + 1e-5 * _EYE3  # np.allclose's atol + rtol * |I|
+
+
 @dataclass(frozen=True)
 class Rigid3:
     """A rigid transform ``target_from_source`` (rotation matrix + translation in metres)."""
@@ -141,9 +145,10 @@ class Rigid3:
     def __post_init__(self) -> None:
         rotation = check_finite(self.rotation, "rotation").reshape(3, 3)
         translation = check_finite(self.translation, "translation").reshape(3)
-        if abs(np.linalg.det(rotation) - 1.0) > 1e-6 or not np.allclose(
-            rotation @ rotation.T, np.eye(3), atol=1e-6
-        ):
+        # np.allclose(R R^T, I, atol=1e-6) spelled out: it took 12 of a Rigid3's 19 us
+        if abs(np.linalg.det(rotation) - 1.0) > 1e-6 or not (
+            np.abs(rotation @ rotation.T - _EYE3) <= _ORTHONORMAL_TOLERANCE
+        ).all():
             raise GeometryError("rotation is not a proper orthonormal matrix")
         rotation.flags.writeable = False
         translation.flags.writeable = False
