@@ -524,10 +524,24 @@ def _batched_aliked_equals_one_image_at_a_time(device, motorcycle):
                   for image, mask in zip(images, masks)]
         assert len(batched[0]) == 400 and 0 < len(batched[2]) < 400
         for ours, theirs in zip(batched, single):
-            assert len(ours) == len(theirs)
-            np.testing.assert_allclose(ours.keypoints_px, theirs.keypoints_px, atol=1e-3)
-            np.testing.assert_allclose(ours.scores, theirs.scores, atol=1e-4)
-            assert (ours.descriptors * theirs.descriptors).sum(1).min() > 0.9999
+            if device == "cpu":  # the same arithmetic: the same keypoints in the same order
+                np.testing.assert_allclose(ours.keypoints_px, theirs.keypoints_px, atol=1e-3)
+                np.testing.assert_allclose(ours.scores, theirs.scores, atol=1e-4)
+                assert (ours.descriptors * theirs.descriptors).sum(1).min() > 0.9999
+                continue
+            # cuDNN picks other kernels for a batch: scores differ in the last bits, so
+            # keypoints of (nearly) equal score may swap places or, at the cap, be swapped
+            # for one another; the same keypoints otherwise, within 0.01 px
+            assert abs(len(ours) - len(theirs)) <= 0.01 * len(theirs)
+            distance = np.linalg.norm(ours.keypoints_px[:, None] - theirs.keypoints_px[None],
+                                      axis=2)
+            nearest = distance.argmin(1)
+            same = distance[np.arange(len(ours)), nearest] < 0.01
+            assert same.mean() >= 0.98
+            np.testing.assert_allclose(ours.scores[same], theirs.scores[nearest[same]],
+                                       atol=1e-3)
+            assert (ours.descriptors[same] * theirs.descriptors[nearest[same]]).sum(1).min() \
+                > 0.999
     assert batched[1].keypoints_px[:, 0].min() >= 199.5  # masked columns left out
     with pytest.raises(FeatureError, match="images of one size"):
         extractor.extract_batch([left, left[:200]])
