@@ -32,6 +32,10 @@ def test_round_trip_resume_and_swapped_pairs(tmp_path, rng):
         assert store.pairs() == [("front/1700.png", "back/1700.png")]
         with pytest.raises(CusfmError, match="no features for x.png"):
             store.features("x.png")
+        # the keypoints alone, without reading the descriptors
+        np.testing.assert_array_equal(store.keypoints("back/1700.png"), f1.keypoints_px)
+        with pytest.raises(CusfmError, match="no features for x.png"):
+            store.keypoints("x.png")
 
 
 def test_incomplete_entries_do_not_count(tmp_path, rng):

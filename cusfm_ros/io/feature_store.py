@@ -202,6 +202,13 @@ class FeatureStore:
         return Features(group["keypoints_px"][()], group["scores"][()],
                         group["descriptors"][()], tuple(int(v) for v in group.attrs["image_size"]))
 
+    def keypoints(self, name: str) -> np.ndarray:
+        """(N, 2) keypoint pixels of an image, without its descriptors (98 % of its bytes:
+        the export and the mapping stage read every image's keypoints only)."""
+        if not self.has_features(name):
+            raise CusfmError(f"{self.path}: no features for {name}; run the features stage")
+        return self._file["features"][_key(name)]["keypoints_px"][()]
+
     def feature_names(self) -> list[str]:
         return [_unkey(k) for k, g in self._file["features"].items()
                 if g.attrs.get("complete", False)]

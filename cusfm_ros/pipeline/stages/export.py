@@ -100,7 +100,7 @@ def colmap_model(keyframes: KeyframeSet, world_from_rig: Trajectory, extrinsics:
     for keyframe in images:
         rig_from_cam = extrinsics.cameras[keyframe.camera_name].rig_from_cam
         world_from_cam = Rigid3.from_matrix(by_sample[keyframe.sample_id]) * rig_from_cam
-        keypoints = features.features(keyframe.image_name).keypoints_px.astype(np.float64)
+        keypoints = features.keypoints(keyframe.image_name).astype(np.float64)
         ids = np.full(len(keypoints), -1, np.int64)
         sel = rows_of.get(keyframe.image_name, no_rows)
         ids[points.obs_keypoint[sel]] = point_ids[points.obs_point[sel]]

@@ -284,7 +284,7 @@ class MappingStage(Stage):
                     len(sample_stamps))
         pairs = read_pairs(run.pairs)
         with open_features(run, options) as store:
-            keypoints = {k.image_name: store.features(k.image_name).keypoints_px
+            keypoints = {k.image_name: store.keypoints(k.image_name)
                          for k in keyframes.keyframes}
         with open_verified(run, options) as verified:
             missing = [p for p in pairs if not verified.has_matches(*p)]
