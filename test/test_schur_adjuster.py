@@ -127,3 +127,21 @@ def test_ladybug_49_same_final_cost_as_gtsam():
     assert adjusted.cost() == pytest.approx(reference.final_cost, rel=1e-3)
     assert adjusted.cost() < 0.02 * problem.cost()
     assert result.iterations <= 7
+
+
+def test_observation_pairs_in_torch_are_numpys(rng):
+    """The pairs of observations of each point, built by torch (on the GPU's path) and by
+    numpy (the CPU's): the same integers in the same order."""
+    from cusfm_ros.core.mapping.schur_adjuster import _Pairs, _pairs_in_torch
+
+    lengths = rng.integers(1, 9, 300)
+    obs_point = rng.permutation(np.repeat(np.arange(300), lengths))
+    obs_camera = rng.integers(0, 40, len(obs_point))
+    on_cpu = _Pairs(obs_point, obs_camera, 40, "cpu")
+    first, second, block = _pairs_in_torch(torch.as_tensor(obs_point),
+                                           torch.as_tensor(obs_camera), 40)
+    assert len(first) == int((lengths ** 2).sum())
+    for ours, theirs in ((first, on_cpu.first), (second, on_cpu.second),
+                         (block, on_cpu.block)):
+        np.testing.assert_array_equal(ours.numpy(), theirs.numpy())
+    assert (obs_point[first.numpy()] == obs_point[second.numpy()]).all()

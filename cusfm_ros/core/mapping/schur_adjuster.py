@@ -152,20 +152,42 @@ def so3_exp(w: torch.Tensor) -> torch.Tensor:
 
 class _Pairs:
     """Every ordered pair of observations of one point (the blocks of W V⁻¹ Wᵀ), built once
-    on the host."""
+    where the solve runs. On a GPU with torch: the host's numpy took 1.2 s of the mapping
+    stage's main thread at 300 frames (py-spy, H100) for ~7M pairs, before copying them
+    over; on the CPU numpy stays (0.6 s against torch's 1.4 s for 8.5M pairs)."""
 
     def __init__(self, obs_point: np.ndarray, obs_camera: np.ndarray, num_cameras: int,
                  device) -> None:
-        order = np.argsort(obs_point, kind="stable")
-        counts = np.bincount(obs_point)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        n = counts[obs_point[order]]
-        first = np.repeat(order, n)
-        second = order[concatenated_ranges(starts[obs_point[order]], n)]
-        self.first = torch.as_tensor(first, device=device)
-        self.second = torch.as_tensor(second, device=device)
-        self.block = torch.as_tensor(obs_camera[first] * num_cameras + obs_camera[second],
-                                     device=device)
+        if torch.device(device).type == "cpu":
+            order = np.argsort(obs_point, kind="stable")
+            counts = np.bincount(obs_point)
+            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            n = counts[obs_point[order]]
+            first = np.repeat(order, n)
+            second = order[concatenated_ranges(starts[obs_point[order]], n)]
+            self.first, self.second = torch.as_tensor(first), torch.as_tensor(second)
+            self.block = torch.as_tensor(obs_camera[first] * num_cameras
+                                         + obs_camera[second])
+            return
+        self.first, self.second, self.block = _pairs_in_torch(
+            torch.as_tensor(obs_point, device=device),
+            torch.as_tensor(obs_camera, device=device), num_cameras)
+
+
+def _pairs_in_torch(point, camera, num_cameras: int):
+    """``_Pairs``' (first, second, block) computed by torch where ``point`` lives: the same
+    integers as the numpy version."""
+    order = torch.argsort(point, stable=True)
+    counts = torch.bincount(point)
+    starts = torch.cumsum(counts, 0) - counts
+    sorted_point = point[order]
+    n = counts[sorted_point]
+    first = torch.repeat_interleave(order, n)
+    # concatenated ranges starts[p] + 0..n-1, one run per observation (index_ranges.py)
+    run_start = torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+    within = torch.arange(len(first), device=point.device) - run_start
+    second = order[torch.repeat_interleave(starts[sorted_point], n) + within]
+    return first, second, camera[first] * num_cameras + camera[second]
 
 
 class SchurAdjuster:
