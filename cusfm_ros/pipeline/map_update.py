@@ -113,6 +113,12 @@ class _MergedFeatures:
             return self.map.keyframe_features(self.old[name])[0]
         return self.store.features(name)
 
+    def keypoints(self, name: str) -> np.ndarray:
+        """As ``FeatureStore.keypoints`` (the export reads the keypoints only)."""
+        if name in self.old:
+            return self.features(name).keypoints_px
+        return self.store.keypoints(name)
+
 
 def _merged_rig(old: Rig, new: Rig) -> tuple[Rig, dict[str, str]]:
     """One rig with the map's cameras and the new session's; a new camera keeps its name when
