@@ -227,42 +227,11 @@ def detect_keypoints(scores: torch.Tensor, radius: int = 2, threshold: float = 0
 
     ``threshold > 0``: keypoints above it (at most ``max_keypoints`` if > 0, else ``limit``,
     strongest first); otherwise the ``max_keypoints`` strongest. Sub-pixel positions come from
-    a soft-argmax (temperature 0.1) over the (2r+1)^2 neighbourhood.
+    a soft-argmax (temperature 0.1) over the (2r+1)^2 neighbourhood. ``allowed``: (H, W)
+    bool, no keypoint where False. A batch of one for ``detect_keypoints_batch``.
     """
-    _, _, h, w = scores.shape
-    nms = simple_nms(scores, radius)
-    nms[:, :, :radius] = 0
-    nms[:, :, :, :radius] = 0
-    nms[:, :, h - radius:] = 0
-    nms[:, :, :, w - radius:] = 0
-    if allowed is not None:  # (H, W) bool: no keypoint where False
-        nms = torch.where(allowed[None, None], nms, torch.zeros_like(nms))
-    flat_nms, flat = nms.reshape(-1), scores.reshape(-1)
-    if threshold > 0:
-        mask = flat_nms > threshold
-        if not mask.any():
-            mask = flat_nms > flat.mean()
-        indices = mask.nonzero()[:, 0]
-        cap = max_keypoints if max_keypoints > 0 else limit
-        if len(indices) > cap:
-            order = flat[indices].sort(descending=True)[1][:cap]
-            indices = indices[order]
-    else:
-        indices = torch.topk(flat_nms, min(max_keypoints, flat_nms.numel())).indices
-    kernel = 2 * radius + 1
-    patches = F.unfold(scores, kernel_size=kernel, padding=radius)[0].t()[indices]
-    grid_1d = torch.linspace(-radius, radius, kernel, device=scores.device)
-    dy, dx = torch.meshgrid(grid_1d, grid_1d, indexing="ij")
-    grid = torch.stack([dx.reshape(-1), dy.reshape(-1)], dim=1)
-    weights = ((patches - patches.max(dim=1).values[:, None]) / 0.1).exp()
-    residual = weights @ grid / weights.sum(dim=1)[:, None]
-    xy = torch.stack([indices % w, torch.div(indices, w, rounding_mode="trunc")], 1)
-    keypoints = xy.to(scores.dtype) + residual
-    scale = torch.tensor([w - 1, h - 1], dtype=scores.dtype, device=scores.device)
-    normalized = keypoints / scale * 2 - 1
-    keypoint_scores = F.grid_sample(scores, normalized.view(1, 1, -1, 2), mode="bilinear",
-                                    align_corners=True)[0, 0, 0]
-    return scale * (normalized + 1) / 2.0, keypoint_scores
+    return detect_keypoints_batch(scores, radius, threshold, max_keypoints, limit,
+                                  None if allowed is None else allowed[None])[0]
 
 
 def detect_keypoints_batch(scores: torch.Tensor, radius: int = 2, threshold: float = 0.2,
@@ -270,8 +239,8 @@ def detect_keypoints_batch(scores: torch.Tensor, radius: int = 2, threshold: flo
                            allowed: torch.Tensor | None = None
                            ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """``detect_keypoints`` over a batch of score maps (B, 1, H, W) at once: each image's
-    keypoints and scores, as ``detect_keypoints`` gives them for that image alone (the same
-    selection and order; the sub-pixel refinement in one pass over every keypoint).
+    keypoints and scores, as that image alone gives them (the selection is per image; the
+    sub-pixel refinement runs in one pass over every keypoint).
 
     One host sync per batch (the keypoint counts) instead of two or three per image: one
     image at a time, the GPU waited on the CPU between images. ``allowed``: (B, H, W) bool.
