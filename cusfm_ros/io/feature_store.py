@@ -195,19 +195,20 @@ class FeatureStore:
         group.attrs["complete"] = True
         self._written()
 
-    def features(self, name: str) -> Features:
+    def _features_group(self, name: str):
         if not self.has_features(name):
             raise CusfmError(f"{self.path}: no features for {name}; run the features stage")
-        group = self._file["features"][_key(name)]
+        return self._file["features"][_key(name)]
+
+    def features(self, name: str) -> Features:
+        group = self._features_group(name)
         return Features(group["keypoints_px"][()], group["scores"][()],
                         group["descriptors"][()], tuple(int(v) for v in group.attrs["image_size"]))
 
     def keypoints(self, name: str) -> np.ndarray:
         """(N, 2) keypoint pixels of an image, without its descriptors (98 % of its bytes:
         the export and the mapping stage read every image's keypoints only)."""
-        if not self.has_features(name):
-            raise CusfmError(f"{self.path}: no features for {name}; run the features stage")
-        return self._file["features"][_key(name)]["keypoints_px"][()]
+        return self._features_group(name)["keypoints_px"][()]
 
     def feature_names(self) -> list[str]:
         return [_unkey(k) for k, g in self._file["features"].items()
