@@ -93,9 +93,7 @@ def _exit_without(owner: int) -> None:
         time.sleep(0.5)
         try:
             os.kill(owner, 0)
-        except ProcessLookupError:
-            os._exit(1)
-        except PermissionError:  # the pid was reused by another user's process
+        except (ProcessLookupError, PermissionError):  # gone, or its pid now another user's
             os._exit(1)
 
 

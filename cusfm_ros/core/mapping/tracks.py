@@ -46,9 +46,9 @@ class Tracks:
         return np.diff(self.offsets)
 
 
-def _split_inconsistent(nodes: np.ndarray, image_of: np.ndarray, edges: np.ndarray,
-                        order: np.ndarray) -> tuple[np.ndarray, int]:
-    """Greedy union-find over ``edges`` (pairs of node ids) in ``order``; a merge that would
+def _split_inconsistent(nodes: np.ndarray, image_of: np.ndarray, edges: np.ndarray
+                        ) -> tuple[np.ndarray, int]:
+    """Greedy union-find over ``edges`` (pairs of node ids) in their order; a merge that would
     join two keypoints of one image is skipped. Returns a root per node and the skips.
 
     Written by hand (no library offers a union-find that refuses merges); nodes are renumbered
@@ -57,7 +57,7 @@ def _split_inconsistent(nodes: np.ndarray, image_of: np.ndarray, edges: np.ndarr
     nodes = np.asarray(nodes, np.int64)
     if np.any(nodes[1:] <= nodes[:-1]):
         raise ValueError("_split_inconsistent: nodes must be sorted and unique")
-    compact = np.searchsorted(nodes, edges[order])
+    compact = np.searchsorted(nodes, edges)
     parent = list(range(len(nodes)))
     images: list = [{i: n} for n, i in enumerate(np.asarray(image_of).tolist())]
     skipped = 0
@@ -90,7 +90,7 @@ def split_components(item: tuple[np.ndarray, np.ndarray, np.ndarray]
     edges in the order to merge) -> (nodes, their roots, the skips). Module-level, so that a
     process pool can run groups side by side."""
     nodes, image_of, edges = item
-    roots, skipped = _split_inconsistent(nodes, image_of, edges, np.arange(len(edges)))
+    roots, skipped = _split_inconsistent(nodes, image_of, edges)
     return nodes, roots, skipped
 
 
