@@ -41,19 +41,26 @@ def test_one_wrong_match_does_not_cost_the_tracks_it_chains_together():
         assert len(set(keypoints.tolist())) == 1 and sorted(images.tolist()) == list(range(50))
 
 
+def _noisy_matches(rng, pairs, keypoints: int, per_pair: int, wrong_share: float):
+    """Matches of keypoint k to keypoint k for each image pair, a share of them wrong (to a
+    random keypoint), with random confidences."""
+    matches, confidences = [], []
+    for i, j in pairs:
+        a = rng.choice(keypoints, per_pair, replace=False)
+        b = a.copy()
+        wrong = rng.random(per_pair) < wrong_share
+        b[wrong] = rng.integers(0, keypoints, wrong.sum())
+        matches.append((i, j, np.stack([a, b], 1)))
+        confidences.append(rng.random(per_pair))
+    return matches, confidences
+
+
 def test_tracks_equal_a_plain_greedy_union_find(rng):
     """Many conflicts (10 % wrong matches over 30 images): the tracks are those of a plain
     greedy union-find over every match, most confident first, refusing a merge that would put
     two keypoints of one image into one track."""
-    matches, confidences = [], []
-    for i in range(30):
-        for j in range(i + 1, min(i + 4, 30)):
-            a = rng.choice(60, 40, replace=False)
-            b = a.copy()
-            wrong = rng.random(40) < 0.1
-            b[wrong] = rng.integers(0, 60, wrong.sum())
-            matches.append((i, j, np.stack([a, b], 1)))
-            confidences.append(rng.random(40))
+    matches, confidences = _noisy_matches(
+        rng, [(i, j) for i in range(30) for j in range(i + 1, min(i + 4, 30))], 60, 40, 0.1)
     tracks = build_tracks([60] * 30, matches, confidences=confidences)
     parent, members = {}, {}
 
@@ -88,15 +95,10 @@ def test_tracks_rebuilt_in_groups_on_worker_processes_are_the_same(rng, monkeypa
     from cusfm_ros.core.mapping import tracks as tracks_module
     from cusfm_ros.pipeline.parallel import process_map
 
-    matches, confidences = [], []
-    for i in range(80):  # eight blocks of ten images: at least eight components
-        for j in range(i + 1, min(i + 3, 10 * (i // 10 + 1))):
-            a = rng.choice(50, 30, replace=False)
-            b = a.copy()
-            wrong = rng.random(30) < 0.15
-            b[wrong] = rng.integers(0, 50, wrong.sum())
-            matches.append((i, j, np.stack([a, b], 1)))
-            confidences.append(rng.random(30))
+    # eight blocks of ten images: at least eight components
+    matches, confidences = _noisy_matches(
+        rng, [(i, j) for i in range(80) for j in range(i + 1, min(i + 3, 10 * (i // 10 + 1)))],
+        50, 30, 0.15)
     one_pass = build_tracks([50] * 80, matches, confidences=confidences)
     monkeypatch.setattr(tracks_module, "PARALLEL_MIN_EDGES", 0)
 
