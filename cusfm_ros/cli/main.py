@@ -18,7 +18,7 @@ from cusfm_ros import __version__
 from cusfm_ros.cli import (calibrate, convert, demo, evaluate, fleet, inspect, keyframes,
                            localize, map, map_update, match, models, report, simulate, vocab)
 from cusfm_ros.errors import CusfmError
-from cusfm_ros.pipeline.worker import CANCELLED_STATUS, Cancelled
+from cusfm_ros.pipeline.worker import CANCELLED_STATUS, Cancelled, raise_cancelled
 
 SUBCOMMANDS = (simulate, convert, inspect, keyframes, map, map_update, fleet, localize,
                calibrate, match, models, vocab, evaluate, report, demo)
@@ -57,10 +57,7 @@ def _sigterm_unwinds():
         yield
         return
 
-    def terminated(signum, frame):
-        raise Cancelled()
-
-    previous = signal.signal(signal.SIGTERM, terminated)
+    previous = signal.signal(signal.SIGTERM, raise_cancelled)
     try:
         yield
     finally:

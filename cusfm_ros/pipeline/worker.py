@@ -62,7 +62,8 @@ def _emit(stream, event: dict, lock: threading.Lock | None = None) -> None:
         stream.flush()
 
 
-def _raise_cancelled(signum, frame) -> None:
+def raise_cancelled(signum, frame) -> None:
+    """A SIGTERM handler: unwind as ``Cancelled``."""
     raise Cancelled()
 
 
@@ -104,7 +105,7 @@ def _watch_parent(parent: int) -> None:
 
 def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, _raise_cancelled)
+    signal.signal(signal.SIGTERM, raise_cancelled)
     os.environ["CUSFM_PROGRESS"] = "lines"  # progress as log records: they reach the host
     threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True).start()
     stream = sys.stdout
