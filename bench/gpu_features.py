@@ -4,8 +4,9 @@ CUDA device.
 Usage (on a GPU machine): python bench/gpu_features.py
 Prints median milliseconds (CUDA-synchronized) for the networks alone and end to end (with the
 keypoint detection and host transfers), fp32 and fp16 autocast, and LightGlue per pair when
-pairs are matched one at a time or padded into batches (``match_many``), with fused
-(scaled-dot-product) and explicit attention, with the share of fp32's matches that fp16 keeps;
+pairs are matched one at a time or padded into batches (``match_many``) in fp32, with TF32
+products and in fp16, with fused (scaled-dot-product) and explicit attention, with the share
+of fp32's matches that each keeps;
 and batches whose padded sizes change from batch to batch (as in the loops and matching
 stages), the first pass over new shapes and a second over the same, with torch's choice of
 attention kernels and without cuDNN's (which plans per shape); asserts nothing.
@@ -80,27 +81,32 @@ def main() -> None:
         dense = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, detection_threshold=-1,
                                                    device="cuda"))
         g0, g1 = dense.extract(image), dense.extract(other)
-        for batch_pairs, half in ((1, False), (16, False), (16, True), (32, True)):
+        for batch_pairs, half, tf32 in ((1, False, False), (16, False, False),
+                                        (16, False, True), (32, False, True),
+                                        (16, True, False), (32, True, False)):
             batched = TorchLightGlueMatcher(LightGlueOptions(batch_pairs=batch_pairs,
-                                                             half_precision=half,
+                                                             half_precision=half, tf32=tf32,
                                                              device="cuda"))
-            pairs = [(g0, g1)] * 32
-            rows.append((f"LightGlue 2x2048 per pair, batches of {batch_pairs}, "
-                         f"{'fp16 autocast' if half else 'fp32'}",
-                         median_ms(partial(batched.match_many, pairs), repeats=5) / 32))
-            agreement.append((batch_pairs, half, batched.match_many(pairs[:2])[0]))
-            if batch_pairs == 16:  # the same with the explicit attention graph (the export's)
-                batched.model.fuse_attention(False)
-                rows.append((f"LightGlue 2x2048 per pair, batches of 16, "
-                             f"{'fp16 autocast' if half else 'fp32'}, explicit attention",
+            precision = "fp16 autocast" if half else "fp32, TF32 products" if tf32 else "fp32"
+            for name, (a, b) in (("2x2048", (g0, g1)), ("2x1024", (f0, f1))):
+                pairs = [(a, b)] * 32
+                rows.append((f"LightGlue {name} per pair, batches of {batch_pairs}, "
+                             f"{precision}",
                              median_ms(partial(batched.match_many, pairs), repeats=5) / 32))
+            agreement.append((batch_pairs, precision, batched.match_many([(g0, g1)])[0]))
+            if batch_pairs == 16 and not tf32:  # the explicit attention graph (the export's)
+                batched.model.fuse_attention(False)
+                rows.append((f"LightGlue 2x2048 per pair, batches of 16, {precision}, "
+                             f"explicit attention",
+                             median_ms(partial(batched.match_many, [(g0, g1)] * 32),
+                                       repeats=5) / 32))
         changing_shapes(torch, g0, g1, rows)
     print(f"keypoints {len(f0)}/{len(f1)}, matches {len(m32)}")
     reference = {tuple(m) for m in TorchLightGlueMatcher(LightGlueOptions(
         batch_pairs=1, device="cuda")).match(g0, g1).indices}
-    for batch_pairs, half, found in agreement:
+    for batch_pairs, precision, found in agreement:
         common = len(reference & {tuple(m) for m in found.indices})
-        print(f"2x2048, batches of {batch_pairs}, half {half}: {len(found)} matches, {common} "
+        print(f"2x2048, batches of {batch_pairs}, {precision}: {len(found)} matches, {common} "
               f"of fp32 one at a time's {len(reference)}")
 
 

@@ -41,6 +41,18 @@ def sdpa_kernel_without_cudnn():
                         SDPBackend.MATH])
 
 
+@contextlib.contextmanager
+def float32_matmul_precision(torch, precision: str):
+    """``torch.set_float32_matmul_precision(precision)`` for the block ("high": TF32 on GPUs
+    that have it), the process's own setting again afterwards."""
+    before = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision(precision)
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(before)
+
+
 def _device(name: str):
     import torch
 
@@ -223,20 +235,25 @@ class TorchLightGlueMatcher:
         return filter_matches(scores[0].float().cpu().numpy(), o.filter_threshold)
 
     def _precision(self):
-        """fp16 autocast on a GPU when ``half_precision`` asks for it, with cuDNN's attention
-        kernel left out. In fp16 the loops stage ran 3x slower than in fp32 (H200, 2026-12-05)
-        although a fixed-size batch ran 3.8x faster: the stages pad each batch to its own
-        sizes, and cuDNN builds an execution plan for every new shape (55-400 ms each, as its
-        users report); ``bench/gpu_features.py`` times both choices over changing sizes.
-        fp32 never reaches cuDNN's kernel (it takes fp16/bf16 only)."""
+        """On a GPU: TF32 matrix products when ``tf32`` asks for them, fp16 autocast when
+        ``half_precision`` does, with cuDNN's attention kernel left out. In fp16 the loops
+        stage ran 3x slower than in fp32 (H200, 2026-12-05) although a fixed-size batch ran
+        3.8x faster: the stages pad each batch to its own sizes, and cuDNN builds an execution
+        plan for every new shape (55-400 ms each, as its users report);
+        ``bench/gpu_features.py`` times both choices over changing sizes. fp32 never reaches
+        cuDNN's kernel (it takes fp16/bf16 only)."""
         torch = self.torch
         stack = contextlib.ExitStack()
-        if not (self.options.half_precision and self.device.type == "cuda"):
+        o = self.options
+        if self.device.type != "cuda" or not (o.half_precision or o.tf32):
             return stack
-        # sdpa_kernel sets process-wide flags and restores them on exit: one pass at a time
+        # both set process-wide flags and restore them on exit: one pass at a time
         stack.enter_context(_SDPA_FLAGS_LOCK)
-        stack.enter_context(sdpa_kernel_without_cudnn())
-        stack.enter_context(torch.autocast("cuda", torch.float16))
+        if o.tf32:
+            stack.enter_context(float32_matmul_precision(torch, "high"))
+        if o.half_precision:
+            stack.enter_context(sdpa_kernel_without_cudnn())
+            stack.enter_context(torch.autocast("cuda", torch.float16))
         return stack
 
     @property

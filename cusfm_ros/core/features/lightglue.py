@@ -33,6 +33,10 @@ class LightGlueOptions:
     half_precision: bool = False
     """The torch backend on a GPU runs the network under fp16 autocast (matrix products in
     half precision, softmaxes in fp32); elsewhere it has no effect."""
+    tf32: bool = False
+    """The torch backend on a GPU with TF32 (NVIDIA Ampere and later) runs the network's fp32
+    matrix products in TF32 (10-bit mantissa inputs, fp32 sums: the linear layers' cost, the
+    most of a pass at ~1,000 points a side); softmaxes and everything else stay fp32."""
     pad_multiple: int = 1
     """The torch backend pads each batch's sides up to a multiple of this many points
     (masked, so the matches are the same): the network then sees a few shapes again and
