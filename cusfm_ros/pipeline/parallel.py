@@ -138,6 +138,21 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
     pool.shutdown()
 
 
+def map_on_processes(processes: int = 0, fewest: int = 4
+                     ) -> Callable[[Callable, Iterable], Iterable]:
+    """``map(function, items)`` on ``processes`` worker processes (``process_map``'s results
+    alone), for the writers in ``io`` that take a map function; the builtin ``map`` below
+    ``fewest`` processes, where moving the items and results costs more than the workers
+    save (COLMAP text of street 300 on 2 cores: 0.85 s here, 1.2 s on processes)."""
+    if thread_count(processes) < fewest:
+        return map
+
+    def mapped(function: Callable[[Item], Result], items: Iterable[Item]) -> Iterator[Result]:
+        return (result for _, result in process_map(function, items, processes))
+
+    return mapped
+
+
 def _process_context(function: Callable) -> multiprocessing.context.BaseContext:
     """Where the workers come from: forked from a fork server (a fresh interpreter, started
     once per run, that has imported the main module and ``function``'s module), else
