@@ -172,6 +172,32 @@ def test_database_ranks_same_place_first_and_excludes_neighbours(rng):
     assert all(c.image != "img5" for c in near)
 
 
+def test_similarities_are_the_scores_of_one_query_at_a_time(rng):
+    """The loops stage scores blocks of keyframes in one product; each row is bit for bit
+    the scores ``query`` computes from the image's vector, so the candidates are the same."""
+    points, labels = clustered(rng, clusters=96)
+    tree = VocabularyTree.build(points, SMALL)
+    database = ImageDatabase(tree)
+    for index in range(40):
+        keep = rng.random(len(points)) < 0.3
+        database.add(f"img{index}", points[keep & (labels % 12 == index % 12)],
+                     stamp_ns=index * 10**9)
+    database.add("empty", points[:0], stamp_ns=41 * 10**9)
+    block = database.similarities([3, 17, 40, 0])
+    assert block.shape == (4, 41) and block.dtype == database.vector(0).dtype
+    exclude = np.zeros(41, bool)
+    exclude[[2, 9]] = True
+    for row, index in zip(block, [3, 17, 40, 0]):
+        stamp = index * 10**9
+        one = database.query(None, stamp, 41, 2.0, exclude=exclude,
+                             vector=database.vector(index))
+        ours = database.ranked(row.copy(), stamp, 41, 2.0, exclude=exclude)
+        assert [(c.image, c.score) for c in ours] == [(c.image, c.score) for c in one]
+        assert len(ours) > 5 or index == 40
+        assert not {c.image for c in ours} & {"img2", "img9", f"img{index}"}
+    assert database.similarities([]).shape == (0, 41)
+
+
 @pytest.mark.usefixtures("models_ready")
 def test_cusfm_map_end_to_end_on_a_two_lap_stereo_sequence(tmp_path):
     """An indoor loop driven twice with drifting odometry, through every stage of `cusfm map`:

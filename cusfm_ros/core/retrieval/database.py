@@ -6,7 +6,7 @@ columns are the inverted index (word -> images), so a query is one sparse produc
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +29,7 @@ class ImageDatabase:
     positions_m: list[np.ndarray | None] = field(default_factory=list)
     _rows: list[sp.csr_matrix] = field(default_factory=list)
     _matrix: sp.csr_matrix | None = None
+    _stamps: np.ndarray | None = None
 
     def _vector(self, words: np.ndarray) -> sp.csr_matrix:
         size = self.vocabulary.num_words
@@ -77,6 +78,12 @@ class ImageDatabase:
         """The stored TF-IDF vector of the ``index``-th image added."""
         return self._rows[index]
 
+    def _database_matrix(self) -> sp.csr_matrix:
+        if self._matrix is None:
+            self._matrix = sp.vstack(self._rows).tocsr()
+            self._stamps = np.asarray(self.stamps_ns, np.int64)
+        return self._matrix
+
     def query(self, descriptors: np.ndarray | None, stamp_ns: int, top_k: int = 5,
               exclude_within_s: float = 10.0, min_score: float = 0.0,
               exclude: np.ndarray | None = None,
@@ -87,14 +94,29 @@ class ImageDatabase:
         known (an image of the database: ``vector(i)``), instead of its descriptors."""
         if not self.names:
             return []
-        if self._matrix is None:
-            self._matrix = sp.vstack(self._rows).tocsr()
         query = vector if vector is not None else self.bow(descriptors)
         # sparse matrix times a dense vector: 0.5 ms for 600 images, against 5 ms for the
         # sparse-sparse product (which also counts its output's non-zeros first)
-        scores = self._matrix @ query.toarray().ravel()
-        window = np.abs(np.asarray(self.stamps_ns) - stamp_ns) <= exclude_within_s * 1e9
-        scores[window] = -1.0
+        scores = self._database_matrix() @ query.toarray().ravel()
+        return self.ranked(scores, stamp_ns, top_k, exclude_within_s, min_score, exclude)
+
+    def similarities(self, indices: Sequence[int]) -> np.ndarray:
+        """(len(indices), N) cosine scores of the images at ``indices`` against every image,
+        from one sparse product: row for row the scores ``query`` computes from ``vector(i)``
+        (each the same sum in the same order), without its per-call costs (street 300, 600
+        keyframes on 2 cores: 0.14 s one query at a time, 0.05 s in blocks of 256)."""
+        matrix = self._database_matrix()
+        rows = sp.vstack([self._rows[i] for i in indices]) if len(indices) else \
+            sp.csr_matrix((0, matrix.shape[1]), dtype=matrix.dtype)
+        return (rows.tocsr() @ matrix.T).toarray()
+
+    def ranked(self, scores: np.ndarray, stamp_ns: int, top_k: int = 5,
+               exclude_within_s: float = 10.0, min_score: float = 0.0,
+               exclude: np.ndarray | None = None) -> list[Candidate]:
+        """``query``'s answer from a query's scores against every image (``similarities``:
+        a row; overwritten)."""
+        self._database_matrix()
+        scores[np.abs(self._stamps - stamp_ns) <= exclude_within_s * 1e9] = -1.0
         if exclude is not None:
             scores[np.asarray(exclude, bool)] = -1.0
         order = np.argsort(-scores, kind="stable")[:top_k]

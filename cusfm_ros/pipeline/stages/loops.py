@@ -31,6 +31,8 @@ from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
 
 logger = logging.getLogger(__name__)
+QUERY_BLOCK = 256
+"""Keyframes whose retrieval scores are computed together (a dense block of 256 x words)."""
 
 
 def cached_matches(cache: FeatureStore | None, name0: str, name1: str):
@@ -81,11 +83,13 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
         """(query index, query, match, score, cached matches or None, whether they are to be
         computed), in query order."""
         for index, query in enumerate(frames):
-            found = database.query(
-                None, query.stamp_ns, options.top_k, options.exclude_within_s,
-                options.min_score,
-                exclude=np.abs(path_m - path_m[index]) < options.exclude_within_path_m,
-                vector=database.vector(index))  # quantized once, when added
+            if index % QUERY_BLOCK == 0:  # the next block's scores in one product
+                scores = database.similarities(range(index, min(index + QUERY_BLOCK,
+                                                                len(frames))))
+            found = database.ranked(
+                scores[index % QUERY_BLOCK], query.stamp_ns, options.top_k,
+                options.exclude_within_s, options.min_score,
+                exclude=np.abs(path_m - path_m[index]) < options.exclude_within_path_m)
             for candidate in found:
                 match = by_name[candidate.image]
                 if match.stamp_ns < query.stamp_ns:  # each loop once, from its later image
