@@ -90,3 +90,28 @@ def _alive(pid: int) -> bool:
         return False
     with open(f"/proc/{pid}/stat") as handle:  # a zombie (exited, not yet reaped) is gone
         return handle.read().split(") ")[-1][0] != "Z"
+
+
+def _pid_and_loaded(module: str) -> tuple[int, bool]:
+    return os.getpid(), module in sys.modules
+
+
+def test_the_server_started_with_the_run_imports_ahead_and_serves_one_off_calls():
+    """``start_process_server`` imports its modules in the fork server while the caller goes
+    on; ``call_on_process`` then runs on a worker that has them without importing them, and
+    runs here when the server lacks one or one process is asked for (a fresh interpreter:
+    the server is once per process)."""
+    script = (f"import os, sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+              "from test_parallel import _pid_and_loaded\n"
+              "from cusfm_ros.pipeline.parallel import call_on_process, start_process_server\n"
+              "assert 'colorsys' not in sys.modules\n"
+              "assert start_process_server(['colorsys'])\n"
+              "pid, loaded = call_on_process(_pid_and_loaded, 'colorsys', ['colorsys'], 2)\n"
+              "assert pid != os.getpid() and loaded, (pid, loaded)\n"
+              "assert 'colorsys' not in sys.modules\n"
+              "assert call_on_process(_pid_and_loaded, 'x', ['wave'], 2)[0] == os.getpid()\n"
+              "assert call_on_process(_pid_and_loaded, 'x', ['colorsys'], 1)[0] == os.getpid()\n"
+              "print('ok')\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr

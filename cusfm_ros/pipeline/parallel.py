@@ -153,6 +153,39 @@ def map_on_processes(processes: int = 0, fewest: int = 4
     return mapped
 
 
+_SERVER_MODULES: set[str] = set()
+"""What the fork server that ``start_process_server`` started imported (empty: none)."""
+
+
+def start_process_server(modules: Iterable[str] = ()) -> bool:
+    """Start the fork server that the workers come from now, importing the main module and
+    ``modules`` there, in the background: the stages that use workers later find it ready
+    (started at the pose graph's first pool, its imports held that stage's main thread ~1 s,
+    and gtsam's import another 1.4 s, on the GPU machine). Once per process; False where
+    there is no fork server (workers are spawned)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return False
+    if not _SERVER_MODULES:
+        from multiprocessing import forkserver
+
+        preload = ["__main__", *modules]
+        multiprocessing.get_context("forkserver").set_forkserver_preload(preload)
+        forkserver.ensure_running()
+        _SERVER_MODULES.update(preload)
+    return True
+
+
+def call_on_process(function: Callable[[Item], Result], argument: Item,
+                    modules: Iterable[str] = (), processes: int = 0) -> Result:
+    """``function(argument)`` on a worker process when the fork server has imported
+    ``modules`` (``start_process_server``) and more than one process is allowed, else here:
+    for work whose imports are the cost (the pose graph's gtsam, 1.4 s to import), which the
+    server paid while earlier stages ran."""
+    if thread_count(processes) == 1 or not set(modules) <= _SERVER_MODULES:
+        return function(argument)
+    return next(process_map(function, [argument], 2, minimum=1))[1]
+
+
 def _process_context(function: Callable) -> multiprocessing.context.BaseContext:
     """Where the workers come from: forked from a fork server (a fresh interpreter, started
     once per run, that has imported the main module and ``function``'s module), else

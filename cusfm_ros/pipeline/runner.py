@@ -38,6 +38,7 @@ from cusfm_ros.io.digest import DigestCache
 from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.io.run_lock import run_dir_lock
 from cusfm_ros.pipeline.config import options_as_dict
+from cusfm_ros.pipeline.parallel import start_process_server, thread_count
 from cusfm_ros.pipeline.stage import Stage, StageContext
 
 logger = logging.getLogger(__name__)
@@ -179,6 +180,15 @@ class StageRunner:
             raise ConfigError("no stage left to run (every step named was also skipped)")
         return [s for s in self.names if s in steps]
 
+    def _start_workers_server(self, steps: list[str]) -> None:
+        """The fork server of the stages' worker processes, started now when a stage to run
+        uses workers (and more than one core is allowed), so that it imports their modules
+        in the background."""
+        modules = [module for stage in self.stages if stage.name in steps
+                   for module in stage.worker_modules]
+        if modules and thread_count(getattr(self.options, "cpu_threads", 0)) > 1:
+            start_process_server(dict.fromkeys(modules))
+
     def solve(self, run_dir: str | Path, bag: str | Path | None = None,
               steps: list[str] | None = None, overwrite: bool = False) -> dict:
         """Run ``steps``. While it runs, ``report.json`` says ``status: running`` and
@@ -188,6 +198,7 @@ class StageRunner:
         steps = self.check_steps(steps)
         check_device(self.options.device)
         _load_native_runtimes()
+        self._start_workers_server(steps)
         _check_run_dir(run)
         run.root.mkdir(parents=True, exist_ok=True)
         with run_dir_lock(run.stages_dir / "lock"):  # one process per run directory

@@ -183,6 +183,7 @@ def write_exports(directory: Path, keyframes: KeyframeSet, world_from_rig: Traje
 class ExportStage(Stage):
     name = "export"
     sections = {"export": ExportOptions}
+    worker_modules = ("cusfm_ros.io.colmap.readwrite",)
     reads = ("export",)
     inputs = ("keyframes_dir", "features", "mapping_dir")
     outputs = ("initial_poses", "poses", "extrinsics", "points_ply", "results_bag", "exports")

@@ -252,6 +252,7 @@ def _check_visual_support(structure, problem, counts: dict, options: MappingStag
 
 class MappingStage(Stage):
     name = "mapping"
+    worker_modules = ("cusfm_ros.core.mapping.tracks",)
     version = 4  # 2: summary.json keeps the joint extrinsic covariance when asked; 3: stereo
     # principal-point self-calibration, the odometry's scale estimated, visual-support checks; 4:
     # points without parallax do not count as support

@@ -19,7 +19,8 @@ import numpy as np
 
 from cusfm_ros.core.features.types import Features
 from cusfm_ros.core.geometry import Rigid3
-from cusfm_ros.core.graph.pose_graph import LoopConstraint, PoseGraphOptimizer, PoseGraphOptions
+from cusfm_ros.core.graph.pose_graph import (LoopConstraint, PoseGraphOptimizer,
+                                              PoseGraphOptions, PoseGraphResult)
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.relpose.loop_measurement import (LoopMeasurement, LoopView,
                                                       measure_loop)
@@ -33,7 +34,7 @@ from cusfm_ros.io.tum import write_tum
 from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
-from cusfm_ros.pipeline.parallel import ordered_map, process_map
+from cusfm_ros.pipeline.parallel import call_on_process, ordered_map, process_map
 from cusfm_ros.pipeline.stages.loops import cached_matches, remember_matches
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
 
@@ -109,6 +110,12 @@ def _measure(arguments: tuple) -> LoopMeasurement | str:
         return measure_loop(*arguments)
     except GeometryError as exc:
         return str(exc)
+
+
+def _solve(arguments: tuple) -> PoseGraphResult:
+    """``PoseGraphOptimizer(options).solve(...)`` (on a worker process)."""
+    options, *rest = arguments
+    return PoseGraphOptimizer(options).solve(*rest)
 
 
 def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
@@ -210,8 +217,9 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
     for reason in skipped[:5]:
         logger.warning("pose_graph: loop skipped (%s)", reason)
     constraints = constraints + list(extra)
-    result = PoseGraphOptimizer(options).solve(graph.initial, constraints, graph.chains,
-                                               graph.rigid)
+    # on a worker when the run's fork server has imported gtsam (1.4 s) beforehand
+    result = call_on_process(_solve, (options, graph.initial, constraints, graph.chains,
+                                      graph.rigid), ["gtsam"], threads)
     world_from_rig = np.stack([result.world_from_rig[node] @ node_from_rig
                                for node, node_from_rig in graph.readout])
     summary = {"frame_type": frame_type, "nodes": len(graph.initial),
@@ -234,6 +242,7 @@ class PoseGraphStage(Stage):
     inputs = ("keyframes", "features")
     optional_inputs = ("loops",)
     outputs = ("pose_graph_poses", "pose_graph_summary")
+    worker_modules = (__name__, "gtsam")
 
     def run(self, context: StageContext, extra: list[LoopConstraint] = ()) -> dict:
         run, options = context.run, context.options
