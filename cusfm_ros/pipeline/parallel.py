@@ -161,8 +161,9 @@ def start_process_server(modules: Iterable[str] = ()) -> bool:
     """Start the fork server that the workers come from now, importing the main module and
     ``modules`` there, in the background: the stages that use workers later find it ready
     (started at the pose graph's first pool, its imports held that stage's main thread ~1 s,
-    and gtsam's import another 1.4 s, on the GPU machine). Once per process; False where
-    there is no fork server (workers are spawned)."""
+    and gtsam's import another 1.4 s, on the GPU machine). Once per process; a server that
+    an earlier pool started keeps what it imported (its workers import what they lack).
+    False where there is no fork server (workers are spawned)."""
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return False
     if not _SERVER_MODULES:

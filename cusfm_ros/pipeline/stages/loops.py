@@ -32,7 +32,8 @@ from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_ma
 
 logger = logging.getLogger(__name__)
 QUERY_BLOCK = 256
-"""Keyframes whose retrieval scores are computed together (a dense block of 256 x words)."""
+"""Keyframes whose retrieval scores are computed together (a dense block of 256 x
+keyframes)."""
 
 
 def cached_matches(cache: FeatureStore | None, name0: str, name1: str):
