@@ -5,8 +5,8 @@ Usage (on a GPU machine): python bench/gpu_features.py
 Prints median milliseconds (CUDA-synchronized) for the networks alone and end to end (with the
 keypoint detection and host transfers), fp32 and fp16 autocast, and LightGlue per pair when
 pairs are matched one at a time or padded into batches (``match_many``) in fp32, with TF32
-products and in fp16, with fused (scaled-dot-product) and explicit attention, with the share
-of fp32's matches that each keeps;
+products and in fp16, and with the early exit, with fused (scaled-dot-product) and explicit
+attention, with the share of fp32's matches that each keeps;
 and batches whose padded sizes change from batch to batch (as in the loops and matching
 stages), the first pass over new shapes and a second over the same, with torch's choice of
 attention kernels and without cuDNN's (which plans per shape); asserts nothing.
@@ -100,6 +100,13 @@ def main() -> None:
                              f"explicit attention",
                              median_ms(partial(batched.match_many, [(g0, g1)] * 32),
                                        repeats=5) / 32))
+        # LightGlue's early exit, each pair leaving the batch at its own layer
+        early = TorchLightGlueMatcher(LightGlueOptions(batch_pairs=16, depth_confidence=0.95,
+                                                       device="cuda"))
+        for name, (a, b) in (("2x2048", (g0, g1)), ("2x1024", (f0, f1))):
+            rows.append((f"LightGlue {name} per pair, batches of 16, fp32, early exit (0.95)",
+                         median_ms(partial(early.match_many, [(a, b)] * 32), repeats=5) / 32))
+        agreement.append((16, "fp32, early exit (0.95)", early.match_many([(g0, g1)])[0]))
         changing_shapes(torch, g0, g1, rows)
     print(f"keypoints {len(f0)}/{len(f1)}, matches {len(m32)}")
     reference = {tuple(m) for m in TorchLightGlueMatcher(LightGlueOptions(

@@ -212,6 +212,41 @@ def test_torch_backend_adapts_like_onnx(model_dir, features):
     np.testing.assert_allclose(theirs.confidences, ours.confidences, atol=1e-4)
 
 
+def test_batched_early_exit_equals_one_pair_at_a_time(model_dir, features):
+    """With ``depth_confidence`` alone the torch backend batches pairs and lets each leave
+    at its own layer: the matches of one pair at a time (``run_adaptive``), pairs of other
+    sizes and exit layers in one batch included."""
+    torch = pytest.importorskip("torch")
+    from cusfm_ros.core.features.lightglue import normalize_keypoints
+    from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
+
+    f0, f1 = features
+    other = AlikedExtractor(model_dir, AlikedOptions(max_keypoints=1024)).extract(
+        skimage.data.astronaut()[:320, :480].copy())
+
+    def first(f, n):
+        return Features(f.keypoints_px[:n], f.scores[:n], f.descriptors[:n], f.image_size)
+
+    pairs = [(f0, f1), (first(f0, 450), f1), (f0, other), (first(f1, 500), first(f0, 400)),
+             (other, first(f1, 300))]
+    depth = LightGlueOptions(depth_confidence=0.95, batch_pairs=8, device="cpu")
+    assert depth.pairs_per_pass == 8 and ADAPTIVE.pairs_per_pass == 1  # pruning: per pair
+    batched = TorchLightGlueMatcher(depth)
+    single = TorchLightGlueMatcher(LightGlueOptions(depth_confidence=0.95, batch_pairs=1,
+                                                    device="cpu"))
+    layers = set()
+    with torch.inference_mode():
+        for a, b in pairs:
+            feeds = [torch.from_numpy(normalize_keypoints(f.keypoints_px, f.image_size))[None]
+                     for f in (a, b)] + [torch.from_numpy(f.descriptors)[None] for f in (a, b)]
+            layers.add(run_adaptive(single.steps, *feeds, 0.95, -1).layers_run)
+    assert len(layers) >= 2 and min(layers) < 9  # pairs leave the batch at different layers
+    for ours, (a, b) in zip(batched.match_many(pairs), pairs):
+        theirs = single.match(a, b)
+        np.testing.assert_array_equal(ours.indices, theirs.indices)
+        np.testing.assert_allclose(ours.confidences, theirs.confidences, atol=1e-4)
+
+
 def test_adaptive_lighterglue_keeps_most_matches(model_dir):
     from cusfm_ros.core.features.xfeat import XFeatExtractor, XFeatOptions
 

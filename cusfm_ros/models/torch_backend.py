@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from cusfm_ros.core.features.aliked import MIN_IMAGE_PX, AlikedOptions
-from cusfm_ros.core.features.adaptive_lightglue import run_adaptive
+from cusfm_ros.core.features.adaptive_lightglue import confidence_threshold, run_adaptive
 from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LightGlueOptions,
                                                LighterGlueMatcher, adaptive_matches,
                                                check_descriptors, filter_matches,
@@ -294,6 +294,55 @@ class TorchLightGlueMatcher:
                     self.device, half)
         return self._match_halving(pairs[:half]) + self._match_halving(pairs[half:])
 
+    def _early_exit_pass(self, inputs: list, masks: list) -> tuple:
+        """``mutual_best`` of a padded batch with LightGlue's early exit decided per pair
+        (``run_adaptive``'s rule without point pruning): after each layer but the last, the
+        pairs where more than ``depth_confidence`` of the real points are confident take
+        their assignment from that layer's head and leave the batch, and the rest go on
+        with fewer pairs. One pair at a time, the exit saved layers but the GPU idled
+        between the small passes (2026-12-04: 53.4 against 52.2 s per 100 frames)."""
+        torch, model = self.torch, self.model
+        kpts0, kpts1, desc0, desc1 = inputs
+        layers = len(model.transformers)
+        batch, size0 = desc0.shape[:2]
+        real = [torch.ones(desc.shape[:2], dtype=torch.bool, device=desc.device)
+                if mask is None else mask for desc, mask in zip((desc0, desc1), masks)]
+        total = (real[0].sum(1) + real[1].sum(1)).double()
+        partner = torch.zeros((batch, size0), dtype=torch.int64, device=desc0.device)
+        confidence = torch.zeros((batch, size0), dtype=torch.float32, device=desc0.device)
+        valid = torch.zeros((batch, size0), dtype=torch.bool, device=desc0.device)
+        active = torch.arange(batch, device=desc0.device)
+        desc0, desc1 = model.input_proj(desc0), model.input_proj(desc1)
+        encoding0, encoding1 = model.posenc(kpts0), model.posenc(kpts1)
+        for index, layer in enumerate(model.transformers):
+            desc0, desc1 = layer(desc0, desc1, encoding0, encoding1, *masks)
+            if index == layers - 1:
+                done = torch.ones(len(active), dtype=torch.bool, device=desc0.device)
+            else:
+                threshold = confidence_threshold(index, layers)
+                token = model.token_confidence[index]
+                unsure = (((token(desc0) < threshold) & real[0]).sum(1)
+                          + ((token(desc1) < threshold) & real[1]).sum(1))
+                done = 1.0 - unsure / total[active] > self.options.depth_confidence
+            if not bool(done.any()):  # one host sync per layer
+                continue
+            leaving = torch.nonzero(done)[:, 0]
+            head = model.log_assignment[index]
+            found = mutual_best(head(desc0[leaving], desc1[leaving],
+                                     *(None if m is None else m[leaving] for m in masks)),
+                                self.options.filter_threshold)
+            for out, values in zip((partner, confidence, valid), found):
+                out[active[leaving]] = values.to(out.dtype)
+            staying = torch.nonzero(~done)[:, 0]
+            if len(staying) == 0:
+                break
+            active = active[staying]
+            desc0, desc1 = desc0[staying], desc1[staying]
+            encoding0, encoding1 = encoding0[:, staying], encoding1[:, staying]
+            masks = [None if m is None else m[staying] for m in masks]
+            real = [r[staying] for r in real]
+        return partner, confidence, valid
+
     def _match_padded(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
         """One pass over pairs padded to the largest side of each image (rounded up to
         ``pad_multiple``), masks marking the real points (``LightGlueNet.forward``; none on a
@@ -319,10 +368,14 @@ class TorchLightGlueMatcher:
 
             # a side every pair fills needs no mask (the flash kernel takes none)
             masks = [None if m.all() else tensor(m) for m in masks]
+            inputs = [tensor(a) for a in (*batch[0], *batch[1])]
             with self._precision():
-                scores = self.model(*(tensor(a) for a in (*batch[0], *batch[1])), *masks)
-            partner, confidence, valid = (t.cpu().numpy() for t in mutual_best(
-                scores, self.options.filter_threshold))
+                if self.options.depth_confidence > 0:
+                    found = self._early_exit_pass(inputs, masks)
+                else:
+                    found = mutual_best(self.model(*inputs, *masks),
+                                        self.options.filter_threshold)
+            partner, confidence, valid = (t.cpu().numpy() for t in found)
         results = []
         for b, (n0, _) in enumerate(counts):
             index0 = np.nonzero(valid[b, :n0])[0]

@@ -29,7 +29,8 @@ class LightGlueOptions:
     batch_pairs: int = 16
     """Pairs the torch backend matches at once, padded to the largest and masked (one pass
     over the network instead of one per pair: on a GPU the per-pair cost is mostly Python and
-    kernel launches). 1: one pair at a time; the ONNX backend and adaptive runs always are."""
+    kernel launches). 1: one pair at a time; the ONNX backend and runs with
+    ``width_confidence`` always are."""
     half_precision: bool = False
     """The torch backend on a GPU runs the network under fp16 autocast (matrix products in
     half precision, softmaxes in fp32); elsewhere it has no effect."""
@@ -63,9 +64,10 @@ class LightGlueOptions:
 
     @property
     def pairs_per_pass(self) -> int:
-        """``batch_pairs`` for the torch backend's batched path; 1 for an adaptive run (its
-        early exit and pruning are decided per pair)."""
-        return 1 if self.adaptive else self.batch_pairs
+        """``batch_pairs`` for the torch backend's batched path (with ``depth_confidence``,
+        each pair leaves the batch at its own layer); 1 with ``width_confidence`` (the
+        pruning is decided per pair)."""
+        return 1 if self.width_confidence > 0 else self.batch_pairs
 
 
 def normalize_keypoints(keypoints_px: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
