@@ -15,7 +15,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from cusfm_ros.core.features.aliked import MIN_IMAGE_PX, AlikedOptions
-from cusfm_ros.core.features.adaptive_lightglue import confidence_threshold, run_adaptive
+from cusfm_ros.core.features.adaptive_lightglue import (confidence_threshold,
+                                                        confident_enough, run_adaptive)
 from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LightGlueOptions,
                                                LighterGlueMatcher, adaptive_matches,
                                                check_descriptors, filter_matches,
@@ -30,7 +31,7 @@ from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_bes
 from cusfm_ros.models.nets.xfeat import detect_and_describe
 
 logger = logging.getLogger(__name__)
-_SDPA_FLAGS_LOCK = threading.Lock()
+_PRECISION_FLAGS_LOCK = threading.Lock()
 
 
 def sdpa_kernel_without_cudnn():
@@ -248,7 +249,7 @@ class TorchLightGlueMatcher:
         if self.device.type != "cuda" or not (o.half_precision or o.tf32):
             return stack
         # both set process-wide flags and restore them on exit: one pass at a time
-        stack.enter_context(_SDPA_FLAGS_LOCK)
+        stack.enter_context(_PRECISION_FLAGS_LOCK)
         if o.tf32:
             stack.enter_context(float32_matmul_precision(torch, "high"))
         if o.half_precision:
@@ -323,7 +324,7 @@ class TorchLightGlueMatcher:
                 token = model.token_confidence[index]
                 unsure = (((token(desc0) < threshold) & real[0]).sum(1)
                           + ((token(desc1) < threshold) & real[1]).sum(1))
-                done = 1.0 - unsure / total[active] > self.options.depth_confidence
+                done = confident_enough(unsure, total[active], self.options.depth_confidence)
             if not bool(done.any()):  # one host sync per layer
                 continue
             leaving = torch.nonzero(done)[:, 0]

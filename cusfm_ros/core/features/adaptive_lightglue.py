@@ -24,6 +24,13 @@ def confidence_threshold(layer: int, layers: int) -> float:
     return float(np.clip(0.8 + 0.1 * np.exp(-4.0 * layer / layers), 0.0, 1.0))
 
 
+def confident_enough(unsure, points, depth_confidence: float):
+    """The early exit: more than ``depth_confidence`` of the ``points`` are confident once
+    ``unsure`` of them are not (points pruned earlier count as confident: the reference
+    divides by every point). Numbers, or arrays of them (one per pair of a batch)."""
+    return 1.0 - unsure / points > depth_confidence
+
+
 class LayerSteps(Protocol):
     """The network in pieces, batch of one: what the adaptive loop calls between decisions."""
 
@@ -74,9 +81,8 @@ def run_adaptive(steps: LayerSteps, kpts0, kpts1, desc0, desc1, depth_confidence
         tokens, matchability = out[2:4], out[4:6]
         threshold = confidence_threshold(index, steps.layers)
         if depth_confidence > 0:
-            # points pruned earlier count as confident (the reference divides by m + n)
             unsure = _count(xp, tokens[0] < threshold) + _count(xp, tokens[1] < threshold)
-            if 1.0 - unsure / (m + n) > depth_confidence:
+            if confident_enough(unsure, m + n, depth_confidence):
                 break
         if width_confidence > 0:
             for side in (0, 1):
