@@ -138,17 +138,19 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
     pool.shutdown()
 
 
-def map_on_processes(processes: int = 0, fewest: int = 4
+def map_on_processes(processes: int = 0, fewest: int = 4, chunk: int = 8, minimum: int = 64
                      ) -> Callable[[Callable, Iterable], Iterable]:
     """``map(function, items)`` on ``processes`` worker processes (``process_map``'s results
-    alone), for the writers in ``io`` that take a map function; the builtin ``map`` below
-    ``fewest`` processes, where moving the items and results costs more than the workers
-    save (COLMAP text of street 300 on 2 cores: 0.85 s here, 1.2 s on processes)."""
+    alone, ``chunk`` and ``minimum`` as it takes them), for code that takes a map function
+    (the writers in ``io``, the track rebuild); the builtin ``map`` below ``fewest``
+    processes, where moving the items and results costs more than the workers save (COLMAP
+    text of street 300 on 2 cores: 0.85 s here, 1.2 s on processes)."""
     if thread_count(processes) < fewest:
         return map
 
     def mapped(function: Callable[[Item], Result], items: Iterable[Item]) -> Iterator[Result]:
-        return (result for _, result in process_map(function, items, processes))
+        return (result for _, result in process_map(function, items, processes, chunk,
+                                                    minimum))
 
     return mapped
 

@@ -34,7 +34,7 @@ from cusfm_ros.io.map_points_file import write_map_points
 from cusfm_ros.io.pairs_file import read_pairs
 from cusfm_ros.io.tum import read_tum, write_tum
 from cusfm_ros.pipeline.config import options_as_dict
-from cusfm_ros.pipeline.parallel import process_map, thread_count
+from cusfm_ros.pipeline.parallel import map_on_processes, thread_count
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_verified
 
@@ -115,12 +115,7 @@ def _track_workers(threads: int) -> tuple:
     processes = thread_count(threads)
     if processes == 1:
         return None, 1
-
-    def map_groups(function, items):
-        return (result for _, result in process_map(function, items, processes, chunk=1,
-                                                    minimum=2))
-
-    return map_groups, 2 * processes
+    return map_on_processes(processes, fewest=2, chunk=1, minimum=2), 2 * processes
 
 
 def map_keyframes(keyframes: KeyframeSet, keypoints_px: dict[str, np.ndarray],
