@@ -53,9 +53,44 @@ def test_loops_at_the_ratio_are_accepted_and_below_it_rejected(ratio, accepted, 
     # the bounded sampling finds what the full 1000 samples find
     monkeypatch.setattr(loops, "ransac_iterations", lambda *_: TwoViewOptions().max_iterations)
     unbounded = verify_pair(f0, f1, matches, CAMERA, CAMERA, LoopOptions(), seed=0)
-    assert (unbounded.accepted, unbounded.inliers) == (result.accepted, result.inliers)
+    assert unbounded.accepted == result.accepted
+    if not accepted:  # two wrong models: a few far points either side of the depth bound
+        assert max(unbounded.inliers, result.inliers) < LoopOptions().min_inliers
+    else:
+        assert unbounded.inliers == result.inliers
     if accepted:  # the true matches within the 1 px threshold (0.3 px noise in each view)
         assert true * 0.9 <= result.inliers <= true
         direction = result.translation_direction * np.sign(result.translation_direction[0])
         expected = np.array([-1.0, 0.0, -0.2]) / np.linalg.norm([1.0, 0.0, 0.2])
         assert np.degrees(np.arccos(abs(direction @ expected))) < 3.0
+
+
+def test_the_pose_choice_is_opencvs_on_every_point():
+    """``choose_pose`` (depths from the rays' least-squares intersection, all points at once)
+    picks OpenCV's ``recoverPose`` decomposition and keeps the same points: in front of both
+    views within 50 baselines, of the inliers given."""
+    import cv2
+
+    from cusfm_ros.core.geometry import Rigid3
+    from cusfm_ros.core.relpose.two_view import choose_pose
+
+    rng = np.random.default_rng(3)
+    cam1_from_cam0 = Rigid3.from_rotvec(np.array([0.02, -0.15, 0.01]), np.array([0.8, 0.05, 0.3]))
+    points0 = rng.uniform([-6, -3, 2], [6, 3, 30], (400, 3))
+    points0[:20, 2] *= -1  # behind the first view
+    points0[20:30, 2] = 60.0  # past 50 baselines (|t| ~ 0.86)
+    points1 = points0 @ cam1_from_cam0.rotation.T + cam1_from_cam0.translation
+    x0 = points0[:, :2] / points0[:, 2:] + rng.normal(0, 2e-4, (400, 2))
+    x1 = points1[:, :2] / points1[:, 2:] + rng.normal(0, 2e-4, (400, 2))
+    essential = cv2.findEssentialMat(x0[30:], x1[30:], np.eye(3), cv2.RANSAC, 0.999, 1e-3)[0]
+    inliers = np.ones(400, bool)
+    inliers[100:110] = False
+    _, rotation, translation, mask = cv2.recoverPose(essential, x0, x1, np.eye(3),
+                                                     mask=inliers.astype(np.uint8))
+    ours_rotation, ours_translation, ours_mask = choose_pose(essential, x0, x1, inliers)
+    np.testing.assert_allclose(ours_rotation, rotation, atol=1e-12)
+    np.testing.assert_allclose(ours_translation, translation.ravel(), atol=1e-12)
+    np.testing.assert_array_equal(ours_mask, mask.ravel() > 0)
+    assert ours_mask.sum() == 400 - 30 - 10
+    np.testing.assert_allclose(ours_translation, cam1_from_cam0.translation
+                               / np.linalg.norm(cam1_from_cam0.translation), atol=1e-2)

@@ -79,11 +79,41 @@ def estimate_two_view(x0: np.ndarray, x1: np.ndarray, options: TwoViewOptions = 
     inliers = mask.ravel() > 0
     if not recover_pose:
         return TwoViewResult(True, inliers, essential)
-    _, rotation, translation, mask = cv2.recoverPose(essential, x0, x1, _IDENTITY,
-                                                     mask=inliers.astype(np.uint8))
-    norm = float(np.linalg.norm(translation))
-    return TwoViewResult(True, mask.ravel() > 0, essential, rotation,
-                         translation.ravel() / max(norm, 1e-12))
+    rotation, translation, in_front = choose_pose(essential, x0, x1, inliers)
+    return TwoViewResult(True, in_front, essential, rotation, translation)
+
+
+def choose_pose(essential: np.ndarray, x0: np.ndarray, x1: np.ndarray, inliers: np.ndarray,
+                 max_depth: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``cv2.recoverPose``'s choice among the four decompositions of an essential matrix
+    (``cam1_from_cam0`` rotation, unit translation, and the inliers in front of both views
+    closer than ``max_depth`` baselines), with its candidate order and ties, for all points at
+    once: each point's depths in both views come from the least-squares intersection of its
+    two rays, where OpenCV triangulates every point four times with an SVD each (1.6 ms per
+    call on 1000 matches, more than the RANSAC before it). Points near infinity may fall on
+    the other side of ``max_depth`` than OpenCV puts them; no other difference."""
+    first, second, direction = cv2.decomposeEssentialMat(essential)
+    direction = direction.ravel()
+    rays0 = np.c_[x0, np.ones(len(x0))]
+    rays1 = np.c_[x1, np.ones(len(x1))]
+    b = np.einsum("ij,ij->i", rays1, rays1)
+    best = None
+    for rotation, translation in ((first, direction), (second, direction),
+                                  (first, -direction), (second, -direction)):
+        # depth1 * ray1 = depth0 * R ray0 + t, in the least-squares sense (z = 1 rays)
+        turned = rays0 @ rotation.T
+        a = np.einsum("ij,ij->i", turned, turned)
+        c = np.einsum("ij,ij->i", turned, rays1)
+        rhs0, rhs1 = -(turned @ translation), rays1 @ translation
+        det = a * b - c * c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth0 = (b * rhs0 + c * rhs1) / det
+            depth1 = (c * rhs0 + a * rhs1) / det
+        good = (inliers & (depth0 > 0) & (depth1 > 0) & (depth0 < max_depth)
+                & (depth1 < max_depth))
+        if best is None or good.sum() > best[2].sum():
+            best = rotation, translation, good
+    return best
 
 
 def normalized_matches(keypoints0_px: np.ndarray, keypoints1_px: np.ndarray,
