@@ -478,7 +478,7 @@ def _batched_lightglue_equals_one_pair_at_a_time(device, motorcycle):
     with pytest.raises(ConfigError, match="pad_multiple must be >= 1, got 0"):
         LightGlueOptions(pad_multiple=0)
     # a batch the device cannot hold is halved until it fits; one pair that does not is an error
-    real, sizes = matcher._match_padded, []
+    real, sizes = matcher._launch, []
 
     def tight(chunk, limit=1):
         sizes.append(len(chunk))
@@ -486,14 +486,19 @@ def _batched_lightglue_equals_one_pair_at_a_time(device, motorcycle):
             raise torch.OutOfMemoryError("test: out of memory")
         return real(chunk)
 
-    matcher._match_padded = tight
+    matcher._launch = tight
     halved = matcher.match_many(pairs)
     assert sizes == [3, 1, 2, 1, 1, 1]  # pairs 0-2: 3 -> 1 + 2 -> 1 + 1; pair 4 alone
     for ours, theirs in zip(halved, batched):
         np.testing.assert_array_equal(ours.indices, theirs.indices)
-    matcher._match_padded = lambda chunk: tight(chunk, limit=0)
+    matcher._launch = lambda chunk: tight(chunk, limit=0)
     with pytest.raises(torch.OutOfMemoryError):
         matcher.match_many(pairs[:1])
+    # launched now, collected later: the passes of a second call may run in between
+    matcher._launch = real
+    first_half, second_half = matcher.submit_many(pairs[:2]), matcher.submit_many(pairs[2:])
+    for ours, theirs in zip(second_half() + first_half(), single[2:] + single[:2]):
+        np.testing.assert_array_equal(ours.indices, theirs.indices)
 
 
 def test_batched_lightglue_equals_one_pair_at_a_time_on_cpu(motorcycle):

@@ -471,6 +471,36 @@ class _BatchedKnn:
         return [self.knn.match(*pair) for pair in pairs]
 
 
+def test_batched_matches_keep_one_batch_in_flight():
+    """``with_batched_matches`` launches the next batch before it hands out the items of the
+    last (a GPU matches while the stage reads and pads the next pairs), in the items' order,
+    each with its own matches; items with nothing to match pass through in place."""
+    from cusfm_ros.pipeline.components import with_batched_matches
+
+    events = []
+
+    class Submitting:
+        batch_pairs = 2
+
+        def submit_many(self, pairs):
+            batch = len([e for e in events if e[0] == "submit"])
+            events.append(("submit", batch))
+
+            def collect():
+                events.append(("collect", batch))
+                return [f"m{a}" for a, _ in pairs]
+            return collect
+
+    items = [(i, None if i % 3 == 0 else (i, i)) for i in range(10)]  # 6 pairs to match
+    out = list(with_batched_matches(iter(items), Submitting(), lambda item: item[1],
+                                    lambda item, found: (item[0], found)))
+    assert [i for i, _ in out] == list(range(10))
+    assert [m for i, m in out if i % 3] == [f"m{i}" for i in range(10) if i % 3]
+    assert all(m is None for i, m in out if i % 3 == 0)
+    assert events == [("submit", 0), ("submit", 1), ("collect", 0), ("submit", 2),
+                      ("collect", 1), ("collect", 2)]
+
+
 def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monkeypatch):
     """Loops, loop measurement and pair matching run on CPU threads (the measurement on
     processes): the stages on explicit inputs with one thread give what the run with three

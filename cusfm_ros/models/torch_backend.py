@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -263,8 +263,18 @@ class TorchLightGlueMatcher:
 
     def match_many(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
         """``match`` of each pair, ``batch_pairs`` pairs per pass over the network."""
+        return self.submit_many(pairs)()
+
+    def submit_many(self, pairs: list[tuple[Features, Features]]
+                    ) -> Callable[[], list[Matches]]:
+        """``match_many`` in two halves: the passes are launched on the device now, each
+        copying its results back as it ends, and the function returned waits for them. A
+        caller that prepares its next pairs (reads their features, pads and launches them)
+        before it calls it keeps the GPU busy, where waiting for each pass before preparing
+        the next left it idle between passes."""
         if self.batch_pairs == 1:
-            return [self.match(*pair) for pair in pairs]
+            results = [self.match(*pair) for pair in pairs]
+            return lambda: results
         results: list[Matches | None] = [None] * len(pairs)
         todo = []
         for index, (features0, features1) in enumerate(pairs):
@@ -273,18 +283,28 @@ class TorchLightGlueMatcher:
                 results[index] = Matches.empty()
             else:
                 todo.append(index)
+        launched = []
         for start in range(0, len(todo), self.batch_pairs):
             chunk = todo[start:start + self.batch_pairs]
-            for index, matches in zip(chunk, self._match_halving([pairs[i] for i in chunk])):
-                results[index] = matches
-        return results
+            launched += [(chunk[begin:begin + size], passed) for begin, size, passed in
+                         self._launch_halving([pairs[i] for i in chunk])]
 
-    def _match_halving(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
-        """``_match_padded``, halving the batch while the device runs out of memory (its
-        attention takes batch x 4 heads x M x N floats: ~1 GB per tensor for 16 pairs of 2048
-        points, 16x that at 8192); one pair that does not fit is the error it is."""
+        def collect() -> list[Matches]:
+            for indices, passed in launched:
+                for index, matches in zip(indices, self._collect(passed)):
+                    results[index] = matches
+            launched.clear()
+            return results
+        return collect
+
+    def _launch_halving(self, pairs: list[tuple[Features, Features]], begin: int = 0
+                        ) -> list[tuple[int, int, tuple]]:
+        """``(first, count, pass)`` of ``_launch`` over ``pairs``, halving the batch while the
+        device runs out of memory (its attention takes batch x 4 heads x M x N floats: ~1 GB
+        per tensor for 16 pairs of 2048 points, 16x that at 8192); one pair that does not fit
+        is the error it is."""
         try:
-            return self._match_padded(pairs)
+            return [(begin, len(pairs), self._launch(pairs))]
         except self.torch.OutOfMemoryError:
             if len(pairs) == 1:
                 raise
@@ -293,7 +313,8 @@ class TorchLightGlueMatcher:
         half = len(pairs) // 2
         logger.info("LightGlue: %d pairs at once do not fit on %s; %d at a time", len(pairs),
                     self.device, half)
-        return self._match_halving(pairs[:half]) + self._match_halving(pairs[half:])
+        return (self._launch_halving(pairs[:half], begin)
+                + self._launch_halving(pairs[half:], begin + half))
 
     def _early_exit_pass(self, inputs: list, masks: list) -> tuple:
         """``mutual_best`` of a padded batch with LightGlue's early exit decided per pair
@@ -344,11 +365,12 @@ class TorchLightGlueMatcher:
             real = [r[staying] for r in real]
         return partner, confidence, valid
 
-    def _match_padded(self, pairs: list[tuple[Features, Features]]) -> list[Matches]:
+    def _launch(self, pairs: list[tuple[Features, Features]]) -> tuple:
         """One pass over pairs padded to the largest side of each image (rounded up to
         ``pad_multiple``), masks marking the real points (``LightGlueNet.forward``; none on a
         side no pair pads); the mutual-best filter runs on the device and only each point's
-        partner, confidence and validity come back."""
+        partner, confidence and validity come back, copied to pinned host memory behind the
+        pass (an event marks their arrival). ``_collect`` turns it into matches."""
         torch = self.torch
         counts = np.array([(len(a), len(b)) for a, b in pairs])
         multiple = self.options.pad_multiple
@@ -363,9 +385,12 @@ class TorchLightGlueMatcher:
                                                             features.image_size)
                 batch[1][side][b, :n] = features.descriptors
                 masks[side][b, :n] = True
+        cuda = self.device.type == "cuda"
         with torch.inference_mode():
             def tensor(array):
-                return torch.from_numpy(array).to(self.device, non_blocking=True)
+                host = torch.from_numpy(array)
+                # from pinned memory the copy does not wait for the passes still running
+                return (host.pin_memory() if cuda else host).to(self.device, non_blocking=True)
 
             # a side every pair fills needs no mask (the flash kernel takes none)
             masks = [None if m.all() else tensor(m) for m in masks]
@@ -376,7 +401,19 @@ class TorchLightGlueMatcher:
                 else:
                     found = mutual_best(self.model(*inputs, *masks),
                                         self.options.filter_threshold)
-            partner, confidence, valid = (t.cpu().numpy() for t in found)
+            if not cuda:
+                return counts, found, None
+            arrived = torch.cuda.Event()
+            found = [t.to("cpu", non_blocking=True) for t in found]
+            arrived.record()
+        return counts, found, arrived
+
+    @staticmethod
+    def _collect(passed: tuple) -> list[Matches]:
+        counts, found, arrived = passed
+        if arrived is not None:
+            arrived.synchronize()
+        partner, confidence, valid = (t.numpy() for t in found)
         results = []
         for b, (n0, _) in enumerate(counts):
             index0 = np.nonzero(valid[b, :n0])[0]

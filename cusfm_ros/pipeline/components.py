@@ -180,17 +180,28 @@ class LazyMatcher:
     def match_many(self, pairs):
         return self._built().match_many(pairs)
 
+    def submit_many(self, pairs):
+        """The matcher's ``submit_many`` (launch now, collect later) where it has one."""
+        matcher = self._built()
+        if hasattr(matcher, "submit_many"):
+            return matcher.submit_many(pairs)
+        found = matcher.match_many(pairs)
+        return lambda: found
+
 
 def with_batched_matches(items, matcher, pair_of, with_matches):
     """``items`` as they come, except that the pairs they still need matched (``pair_of(item)``:
     (features0, features1), or None) are matched ``matcher.batch_pairs`` at a time, in the
     calling thread, and put in with ``with_matches(item, matches)``; the verification threads
-    downstream get their matches ready. A matcher with no batched path leaves ``items`` as they
-    are (each pair is matched where it is verified)."""
+    downstream get their matches ready. One batch stays in flight: the next one is gathered
+    and launched (``submit_many``) before the items of the last are given out, so a GPU
+    matches while this thread reads features and pads pairs. A matcher with no batched path
+    leaves ``items`` as they are (each pair is matched where it is verified)."""
     batch = getattr(matcher, "batch_pairs", 1)
     if batch <= 1:
         yield from items
         return
+    in_flight = None
     held, wanted = [], []
     for item in items:
         held.append(item)
@@ -198,13 +209,30 @@ def with_batched_matches(items, matcher, pair_of, with_matches):
         if pair is not None:
             wanted.append((len(held) - 1, pair))
         if len(wanted) == batch:
-            yield from _fill(held, wanted, matcher, with_matches)
-            held, wanted = [], []
-    yield from _fill(held, wanted, matcher, with_matches)
+            launched = _submit(held, wanted, matcher)
+            if in_flight is not None:
+                yield from _fill(*in_flight, with_matches)
+            in_flight, held, wanted = launched, [], []
+    launched = _submit(held, wanted, matcher)
+    if in_flight is not None:
+        yield from _fill(*in_flight, with_matches)
+    yield from _fill(*launched, with_matches)
 
 
-def _fill(held, wanted, matcher, with_matches):
-    found = matcher.match_many([pair for _, pair in wanted]) if wanted else []
-    for (index, _), matches in zip(wanted, found):
+def _submit(held, wanted, matcher):
+    """(held items, wanted pairs, the function that returns their matches) with the pairs
+    launched (``submit_many``; ``match_many`` at once for a matcher without it)."""
+    pairs = [pair for _, pair in wanted]
+    submit = getattr(matcher, "submit_many", None)
+    if not pairs:
+        return held, wanted, list
+    if submit is not None:
+        return held, wanted, submit(pairs)
+    found = matcher.match_many(pairs)
+    return held, wanted, lambda: found
+
+
+def _fill(held, wanted, collect, with_matches):
+    for (index, _), matches in zip(wanted, collect()):
         held[index] = with_matches(held[index], matches)
     yield from held
