@@ -181,28 +181,3 @@ def test_point_seen_in_unknown_image_is_named(tmp_path, rng, ext):
     with pytest.raises(FormatError, match=rf"points3D.txt:line {first + 1}: point {fields[0]} "
                                           r"is observed in unknown image\(s\) \[55\]"):
         read_model(tmp_path / "sparse")
-
-
-def test_text_lines_formatted_on_processes_are_the_same_bytes(tmp_path, rng):
-    """The export formats the text's long lines on worker processes (``map_on_processes``);
-    the files are byte for byte those of one process, and read back to the same model."""
-    from cusfm_ros.pipeline.parallel import map_on_processes
-
-    model = make_model(rng, num_images=70, num_points=1200)  # enough work items for workers
-    calls = []
-
-    def counting_map(function, items):
-        items = list(items)
-        calls.append((function.__name__, len(items)))
-        return map_on_processes(2, fewest=1)(function, items)
-
-    write_model(model, tmp_path / "here", "txt")
-    write_model(model, tmp_path / "workers", "txt", counting_map)
-    assert calls == [("_points2d_line", 70), ("_points3d_lines", 3)]
-    for name in ("cameras.txt", "images.txt", "points3D.txt", "rigs.txt", "frames.txt"):
-        here, workers = tmp_path / "here" / name, tmp_path / "workers" / name
-        assert here.exists() == workers.exists()
-        if here.exists():
-            assert here.read_bytes() == workers.read_bytes()
-    assert_models_equal(read_model(tmp_path / "workers"), model)
-    assert map_on_processes(1) is map  # one core: no workers

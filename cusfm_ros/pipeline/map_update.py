@@ -52,7 +52,6 @@ from cusfm_ros.io.tum import format_tum, read_tum
 from cusfm_ros.pipeline.components import make_matcher
 from cusfm_ros.pipeline.localization import map_feature_options
 from cusfm_ros.pipeline.mapper import Mapper
-from cusfm_ros.pipeline.parallel import map_on_processes
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stages.export import colmap_model
 from cusfm_ros.pipeline.stages.map_store import (build_prior_map, features_section,
@@ -366,8 +365,7 @@ def _write_outputs(out: Path, prior: PriorMap, old_poses_text: str | None,
     write_map_store(run.map_dir, merged_map, _poses_text(trajectory, sample_ids,
                                                          old_poses_text))
     if model is not None:
-        write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt",
-                    map_on_processes(options.cpu_threads))
+        write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt")
     write_ply(run.points_ply, points.points3d_in_world)
     write_extrinsics(run.extrinsics, extrinsics)
     write_results_bag(run.results_bag, trajectory, None, points.points3d_in_world, None,

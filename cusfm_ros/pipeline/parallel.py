@@ -142,9 +142,9 @@ def map_on_processes(processes: int = 0, fewest: int = 4, chunk: int = 8, minimu
                      ) -> Callable[[Callable, Iterable], Iterable]:
     """``map(function, items)`` on ``processes`` worker processes (``process_map``'s results
     alone, ``chunk`` and ``minimum`` as it takes them), for code that takes a map function
-    (the writers in ``io``, the track rebuild); the builtin ``map`` below ``fewest``
-    processes, where moving the items and results costs more than the workers save (COLMAP
-    text of street 300 on 2 cores: 0.85 s here, 1.2 s on processes)."""
+    (the track rebuild); the builtin ``map`` below ``fewest`` processes, where moving the
+    items and results costs more than the workers save. (The COLMAP text export went back to
+    one process: its lines on 16 workers cost the GPU machine 1.5 s more than they saved.)"""
     if thread_count(processes) < fewest:
         return map
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import struct
-from collections.abc import Callable, Iterable
 from itertools import chain
 from pathlib import Path
 from typing import BinaryIO
@@ -208,38 +207,7 @@ def _read_rigs_text(directory: Path) -> tuple[dict[int, ColmapRig], dict[int, Co
     return rigs, frames
 
 
-LineMap = Callable[[Callable, Iterable], Iterable[str]]
-"""``line_map(function, items)``: ``function(item)`` of each item, in order (``map``, or the
-same spread over worker processes)."""
-POINTS_PER_ITEM = 500
-"""points3D.txt lines formatted per work item."""
-
-
-def _points2d_line(item: tuple[np.ndarray, np.ndarray]) -> str:
-    """One image's POINTS2D line: the repr of Python floats (exact round trips), mapped over
-    whole columns."""
-    xys, point3d_ids = item
-    xys = np.asarray(xys, np.float64).reshape(-1, 2)
-    return " ".join(chain.from_iterable(zip(
-        map(repr, xys[:, 0].tolist()), map(repr, xys[:, 1].tolist()),
-        map(str, np.asarray(point3d_ids, np.int64).tolist())))) + "\n"
-
-
-def _points3d_lines(points: list[ColmapPoint3D]) -> str:
-    lines = []
-    for point in points:
-        xyz = " ".join(_fmt(v) for v in point.xyz)
-        rgb = " ".join(str(int(v)) for v in point.rgb)
-        track = " ".join(chain.from_iterable(zip(
-            map(str, np.asarray(point.image_ids, np.int64).tolist()),
-            map(str, np.asarray(point.point2d_idxs, np.int64).tolist()))))
-        lines.append(f"{point.point3d_id} {xyz} {rgb} {_fmt(point.error)} {track}\n")
-    return "".join(lines)
-
-
-def _write_text(model: ColmapReconstruction, directory: Path, line_map: LineMap = map) -> None:
-    """The three text files; the keypoint and point lines (millions of floats, whose repr
-    is the cost: ~2 s of one core at 300 stereo frames) formatted through ``line_map``."""
+def _write_text(model: ColmapReconstruction, directory: Path) -> None:
     with open(directory / "cameras.txt", "w", encoding="utf-8") as out:
         out.write("# Camera list with one line of data per camera:\n"
                   "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
@@ -255,21 +223,25 @@ def _write_text(model: ColmapReconstruction, directory: Path, line_map: LineMap 
                   "#   POINTS2D[] as (X, Y, POINT3D_ID)\n"
                   f"# Number of images: {len(model.images)}, mean observations per image: "
                   f"{num_obs / max(len(model.images), 1)}\n")
-        images = sorted(model.images.values(), key=lambda i: i.image_id)
-        for image, points2d in zip(images, line_map(
-                _points2d_line, ((image.xys, image.point3d_ids) for image in images))):
+        for image in sorted(model.images.values(), key=lambda i: i.image_id):
             out.write(f"{image.image_id} {_pose_text(image.cam_from_world)} "
                       f"{image.camera_id} {image.name}\n")
-            out.write(points2d)
+            # repr of Python floats (exact round trips), mapped over whole columns
+            xys = np.asarray(image.xys, np.float64).reshape(-1, 2)
+            out.write(" ".join(chain.from_iterable(zip(
+                map(repr, xys[:, 0].tolist()), map(repr, xys[:, 1].tolist()),
+                map(str, np.asarray(image.point3d_ids, np.int64).tolist())))) + "\n")
     with open(directory / "points3D.txt", "w", encoding="utf-8") as out:
         out.write("# 3D point list with one line of data per point:\n"
                   "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
                   f"# Number of points: {len(model.points3d)}, mean track length: {mean_track}\n")
-        points = sorted(model.points3d.values(), key=lambda p: p.point3d_id)
-        for lines in line_map(_points3d_lines, (points[i:i + POINTS_PER_ITEM]
-                                                for i in range(0, len(points),
-                                                               POINTS_PER_ITEM))):
-            out.write(lines)
+        for point in sorted(model.points3d.values(), key=lambda p: p.point3d_id):
+            xyz = " ".join(_fmt(v) for v in point.xyz)
+            rgb = " ".join(str(int(v)) for v in point.rgb)
+            track = " ".join(chain.from_iterable(zip(
+                map(str, np.asarray(point.image_ids, np.int64).tolist()),
+                map(str, np.asarray(point.point2d_idxs, np.int64).tolist()))))
+            out.write(f"{point.point3d_id} {xyz} {rgb} {_fmt(point.error)} {track}\n")
     if model.rigs:
         _write_rigs_text(model, directory)
 
@@ -473,18 +445,14 @@ def read_model(directory: str | os.PathLike, ext: str | None = None) -> ColmapRe
 
 
 def write_model(model: ColmapReconstruction, directory: str | os.PathLike,
-                ext: str = "txt", line_map: LineMap = map) -> Path:
-    """Write atomically: ``directory`` holds the complete model or is left as it was.
-    ``line_map`` formats the text layout's long lines (the export passes worker processes);
-    the bytes do not depend on it."""
+                ext: str = "txt") -> Path:
+    """Write atomically: ``directory`` holds the complete model or is left as it was."""
     directory = Path(directory)
     files = {name: directory / f"{name}.{ext}" for name in FILE_NAMES}
     _validate(model, files, {})
-    if ext not in ("txt", "bin"):
+    writer = {"txt": _write_text, "bin": _write_binary}.get(ext)
+    if writer is None:
         raise CusfmError(f"unknown COLMAP model format {ext!r} (use 'txt' or 'bin')")
     with atomic_directory(directory) as tmp:
-        if ext == "txt":
-            _write_text(model, tmp, line_map)
-        else:
-            _write_binary(model, tmp)
+        writer(model, tmp)
     return directory
