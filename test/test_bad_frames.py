@@ -36,8 +36,8 @@ def test_skip_bad_frames_leaves_the_frame_out_and_counts_it(tmp_path):
     names = {k["image"] for k in json.loads(
         (run / "keyframes" / "keyframes.json").read_text())["keyframes"]}
     camera = bad["topic"].split("/")[1]  # the other camera's image of that sample stays
-    assert f"{camera}/{stamp}.png" not in names and len(names) == 11
-    assert any(n.endswith(f"/{stamp}.png") and not n.startswith(camera) for n in names)
+    assert f"{camera}/{stamp}.bmp" not in names and len(names) == 11
+    assert any(n.endswith(f"/{stamp}.bmp") and not n.startswith(camera) for n in names)
 
 
 def test_more_bad_frames_than_the_fraction_fail(tmp_path, capsys):

@@ -41,7 +41,7 @@ def test_poses_images_and_calibration_come_through(tmp_path, storage, compressed
         assert (result.directory / keyframe.image_name).is_file()
     again = read_frames_meta(result.directory / "frames_meta.json")
     assert [k.image_name for k in again.keyframes] == [k.image_name for k in kfs.keyframes]
-    # the keyframe PNGs (written with fast settings) hold the bag's pixels exactly
+    # the keyframe images (BMP by default) hold the bag's pixels exactly
     for keyframe, rgb in zip(kfs.keyframes, truth["images_rgb"]):
         written = cv2.imread(str(result.directory / keyframe.image_name), cv2.IMREAD_COLOR)
         if compressed:  # JPEG in the bag: what it decodes to
@@ -50,10 +50,11 @@ def test_poses_images_and_calibration_come_through(tmp_path, storage, compressed
         assert np.array_equal(written[..., ::-1], rgb)
 
 
-def test_uncompressed_keyframe_images_hold_the_same_pixels(tmp_path):
-    """``image_format: bmp`` writes each 8-bit image as BMP with the bag's pixels; a 16-bit
-    image (which BMP cannot hold) stays PNG, its values intact; a format not offered is
-    named."""
+@pytest.mark.parametrize("image_format", ["bmp", "png"])
+def test_keyframe_images_hold_the_same_pixels_in_either_format(tmp_path, image_format):
+    """``image_format`` writes each 8-bit image as BMP (the default) or PNG with the bag's
+    pixels; a 16-bit image (which BMP cannot hold) is PNG, its values intact; a format not
+    offered is named."""
     def deep_first_image(msgtype, message, index):
         if msgtype == m.IMAGE and index == 0:  # the first image as mono16
             message.encoding, message.step = "mono16", message.width * 2
@@ -62,7 +63,7 @@ def test_uncompressed_keyframe_images_hold_the_same_pixels(tmp_path):
     truth = write_bag(tmp_path / "bag", damage=deep_first_image)
     result = extract_keyframes(tmp_path / "bag", tmp_path / "run" / "keyframes",
                                KeyframeOptions(min_translation_m=0.0, min_rotation_deg=0.0,
-                                               image_format="bmp"))
+                                               image_format=image_format))
     keyframes = result.keyframe_set.keyframes
     assert len(keyframes) == 12
     first = truth["images_rgb"][0].tobytes()[:2 * 64 * 48]
@@ -73,7 +74,8 @@ def test_uncompressed_keyframe_images_hold_the_same_pixels(tmp_path):
             assert path.suffix == ".png" and written.dtype == np.uint16
             assert written.tobytes() == np.frombuffer(first, "<u2").reshape(48, 64).tobytes()
         else:
-            assert path.suffix == ".bmp" and np.array_equal(written[..., ::-1], rgb)
+            assert path.suffix == f".{image_format}"
+            assert np.array_equal(written[..., ::-1], rgb)
     with pytest.raises(ConfigError, match="keyframes.image_format must be one of png, bmp, "
                                           "got 'jpg'"):
         KeyframeOptions(image_format="jpg")

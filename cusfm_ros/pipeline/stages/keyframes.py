@@ -7,8 +7,8 @@ renamed at the end. ``extract_keyframes(bag, options, out_dir)`` is the stage on
 inputs; ``KeyframesStage`` runs it on a run directory (the runner decides about reuse).
 
 Outputs:
-- ``keyframes/<camera>/<stamp_ns>.png`` — keyframe images (``.bmp`` with
-  ``keyframes.image_format: bmp``);
+- ``keyframes/<camera>/<stamp_ns>.bmp`` — keyframe images (``.png`` with
+  ``keyframes.image_format: png``, and for images deeper than 8 bits);
 - ``keyframes/keyframes.json`` — the keyframe record (nanosecond stamps, cameras, rig,
   initial ``world_from_cam`` poses) every later stage reads;
 - ``keyframes/frames_meta.json`` — the same in pyCuSFM's format (export only; microseconds);
@@ -84,11 +84,12 @@ class KeyframeOptions:
     max_bad_frame_fraction: float = 0.05
     """With ``skip_bad_frames``: more bad images than this fraction of the selected ones
     fail the stage."""
-    image_format: str = "png"
-    """How the keyframe images are stored, both lossless: ``png`` (compact) or ``bmp``
-    (uncompressed: about 1.3-2x the disk, but written and read in 0.1 ms instead of 11 and
-    6 ms per 1241x376 colour image, which is most of the keyframes stage and part of the
-    features stage). Images deeper than 8 bits stay PNG either way."""
+    image_format: str = "bmp"
+    """How the keyframe images are stored, both lossless: ``bmp`` (uncompressed: written
+    and read in 0.1 ms instead of PNG's 11 and 6 ms per 1241x376 colour image, which was
+    most of the keyframes stage and part of the features stage; the issue's "no PNG
+    re-encoding on the hot path") or ``png`` (compact: about 1.3-2x less disk). Images
+    deeper than 8 bits are PNG either way."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.max_bad_frame_fraction <= 1:
