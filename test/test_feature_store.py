@@ -154,3 +154,29 @@ def test_format_1_stores_are_read_and_appended_to(tmp_path, rng):
         np.testing.assert_array_equal(store.matches("l/1.png", "r/1.png").indices, old.indices)
         np.testing.assert_array_equal(store.matches("l/1.png", "l/2.png").indices, new.indices)
         assert len(store.pairs()) == 3
+
+
+def test_read_only_stores_of_an_unchanged_file_share_what_they_read(tmp_path, rng,
+                                                                     monkeypatch):
+    """The stages after extraction each open the store read-only: features one of them read
+    come from memory for the next (read-only arrays: no stage can change another's), until
+    the file changes; a store written to reads from the file."""
+    f0, f1 = features(rng, 50), features(rng, 70)
+    path = tmp_path / "features.h5"
+    with FeatureStore(path, CONFIG) as store:
+        store.put_features("a", f0)
+    with FeatureStore(path, CONFIG, read_only=True) as store:
+        first = store.features("a")
+    with pytest.raises(ValueError, match="read-only"):
+        first.keypoints_px[0, 0] = 1.0
+    with FeatureStore(path, CONFIG, read_only=True) as store:
+        with monkeypatch.context() as patched:  # no HDF5 read for what was read before
+            patched.setattr(FeatureStore, "_features_group", lambda *_: 1 / 0)
+            assert store.features("a") is first
+            assert store.keypoints("a") is first.keypoints_px
+    with FeatureStore(path, CONFIG) as store:  # the file changes
+        store.put_features("a", f1)
+        assert len(store.features("a")) == 70 and store.features("a").keypoints_px.flags.writeable
+    with FeatureStore(path, CONFIG, read_only=True) as store:
+        np.testing.assert_array_equal(store.features("a").descriptors, f1.descriptors)
+        np.testing.assert_array_equal(store.keypoints("a"), f1.keypoints_px)
