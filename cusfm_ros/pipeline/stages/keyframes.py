@@ -516,12 +516,9 @@ class KeyframeExtractor:
                 image_name = f"{name}/{stamp}.{suffix}"
                 world_from_base_all[sample_index] = Rigid3.from_matrix(
                     check_finite(sample_poses[sample_index], "interpolated pose"))
-                # each image gets the body pose at its own stamp (cameras may trigger apart)
-                world_from_base_at_image = Rigid3.from_matrix(
-                    world_from_base.interpolate(np.array([stamp]))[0])
+                # the pose comes after the pass (all images at once, 1 ms each alone)
                 keyframes.append(Keyframe(str(len(keyframes)), name, stamp, image_name,
-                                          str(sample_index),
-                                          world_from_base_at_image * rig[name].rig_from_cam))
+                                          str(sample_index), Rigid3.identity()))
                 yield tmp / image_name, image
 
         def write_image(item) -> bool:
@@ -548,6 +545,12 @@ class KeyframeExtractor:
                            f"{self.options.max_bad_frame_fraction}; the bag is damaged")
         if not keyframes:
             raise BagError("no selected image could be decoded")
+        # each image gets the body pose at its own stamp (cameras may trigger apart)
+        world_from_base_at_images = world_from_base.interpolate(
+            np.array([k.stamp_ns for k in keyframes], np.int64))
+        keyframes = [replace(k, world_from_cam=Rigid3.from_matrix(pose)
+                             * rig[k.camera_name].rig_from_cam)
+                     for k, pose in zip(keyframes, world_from_base_at_images)]
         order = sorted(range(len(keyframes)), key=lambda i: (keyframes[i].stamp_ns,
                                                              keyframes[i].camera_name))
         keyframes = [replace(keyframes[old], keyframe_id=str(new))
