@@ -54,6 +54,26 @@ def test_map_writes_the_page_and_report_adds_the_ground_truth(mapped, capsys):
     assert "http://" not in page and "https://" not in page
 
 
+def test_figures_drawn_on_worker_processes_are_the_same_page(mapped, tmp_path):
+    """The mapper draws the page's figures on worker processes from 4 cores on: the page
+    is byte for byte the one drawn in one process."""
+    from cusfm_ros.pipeline.parallel import map_on_processes
+    from cusfm_ros.report.page import write_report_page
+
+    _, run = mapped
+    shutil.copytree(run, tmp_path / "run")
+    here = write_report_page(tmp_path / "run").read_bytes()
+    drawn = []
+
+    def on_processes(function, specs):
+        specs = list(specs)
+        drawn.append(len(specs))
+        return map_on_processes(2, fewest=1, chunk=1, minimum=1)(function, specs)
+
+    assert write_report_page(tmp_path / "run", figure_map=on_processes).read_bytes() == here
+    assert drawn == [len(FIGURES)]
+
+
 def test_report_needs_a_finished_run(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 1
     err = capsys.readouterr().err

@@ -159,9 +159,13 @@ def _load_native_runtimes() -> None:
 class StageRunner:
     """Runs the registered stages named in ``steps`` on one run directory."""
 
-    def __init__(self, stages: tuple[Stage, ...], options: Any) -> None:
+    def __init__(self, stages: tuple[Stage, ...], options: Any,
+                 worker_modules: tuple[str, ...] = ()) -> None:
+        """``worker_modules``: what the caller's own worker processes will need after the
+        stages (the report page's figures), imported by the stages' fork server too."""
         self.stages = stages
         self.options = options
+        self.worker_modules = worker_modules
         self.producer = {artifact: stage.name for stage in stages
                          for artifact in stage.outputs + stage.optional_outputs
                          + stage.provides}
@@ -187,6 +191,7 @@ class StageRunner:
         modules = [module for stage in self.stages if stage.name in steps
                    for module in stage.worker_modules]
         if modules and thread_count(getattr(self.options, "cpu_threads", 0)) > 1:
+            modules += self.worker_modules
             start_process_server(dict.fromkeys(modules))
 
     def solve(self, run_dir: str | Path, bag: str | Path | None = None,

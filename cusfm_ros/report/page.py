@@ -5,8 +5,10 @@ histograms, a top view of the point cloud, the extrinsic change per camera and t
 ``suspicious`` list.
 
 Figures are drawn with matplotlib's object API (``Figure`` + the Agg canvas: no pyplot, no
-global state). A small script marks each figure once its image has decoded (``data-loaded``)
-and counts them on ``<body data-figures-loaded>``, which the browser test reads.
+global state), each by itself from its own arguments (``figure_map`` may draw them on
+worker processes: the page of a 300-frame run cost the GPU machine 2 s in one process).
+A small script marks each figure once its image has decoded (``data-loaded``) and counts
+them on ``<body data-figures-loaded>``, which the browser test reads.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -155,36 +158,47 @@ def _extrinsics(data: RunData):
     return figure
 
 
-def figures(data: RunData) -> list[tuple[str, str, object]]:
-    """(id, caption, matplotlib Figure) for every figure the run's data allows."""
+FigureMap = Callable[[Callable, Iterable], Iterable[str]]
+"""``figure_map(_draw, specs)``: each figure's PNG in order (``map``, or on processes)."""
+
+
+def _draw(spec: tuple[str, tuple]) -> str:
+    """The base64 PNG of one figure: ``(drawing function's name, its arguments)``."""
+    name, arguments = spec
+    return _png(globals()[name](*arguments))
+
+
+def figure_specs(data: RunData) -> list[tuple[str, str, tuple[str, tuple]]]:
+    """(id, caption, (drawing function's name, its arguments)) for every figure the run's
+    data allows."""
     out = []
     if any(t is not None for t in (data.initial, data.refined, data.localized)):
-        out.append(("trajectory-top", "Trajectory, top view", _trajectories(
-            data, (0, 1), "trajectory, top view (x-y)")))
-        out.append(("trajectory-side", "Trajectory, side view", _trajectories(
-            data, (0, 2), "trajectory, side view (x-z)")))
+        out.append(("trajectory-top", "Trajectory, top view", (
+            "_trajectories", (data, (0, 1), "trajectory, top view (x-y)"))))
+        out.append(("trajectory-side", "Trajectory, side view", (
+            "_trajectories", (data, (0, 2), "trajectory, side view (x-z)"))))
     if data.ate:
-        out.append(("ate", "ATE over time", _ate_over_time(data)))
+        out.append(("ate", "ATE over time", ("_ate_over_time", (data,))))
     if data.report.get("stages"):
-        out.append(("stage-times", "Time per stage", _stage_times(data)))
+        out.append(("stage-times", "Time per stage", ("_stage_times", (data,))))
     if data.latency_s is not None and len(data.latency_s):
         median_ms = float(np.median(data.latency_s)) * 1e3
-        out.append(("latency", "Localization latency", _histogram(
+        out.append(("latency", "Localization latency", ("_histogram", (
             data.latency_s * 1e3, f"latency per query (median {median_ms:.0f} ms)",
-            "milliseconds", 30)))
+            "milliseconds", 30))))
     if data.reprojection_px is not None and len(data.reprojection_px):
-        out.append(("reprojection", "Reprojection error", _histogram(
+        out.append(("reprojection", "Reprojection error", ("_histogram", (
             data.reprojection_px, "reprojection error per observation", "pixels",
-            np.linspace(0, max(4.0, float(np.percentile(data.reprojection_px, 99))), 50))))
+            np.linspace(0, max(4.0, float(np.percentile(data.reprojection_px, 99))), 50)))))
     if data.track_lengths is not None and len(data.track_lengths):
         top = int(max(data.track_lengths.max(), 2))
-        out.append(("track-length", "Track length", _histogram(
+        out.append(("track-length", "Track length", ("_histogram", (
             data.track_lengths, "observations per point", "track length",
-            np.arange(1.5, top + 1.5))))
+            np.arange(1.5, top + 1.5)))))
     if data.points_m is not None and len(data.points_m):
-        out.append(("cloud", "Point cloud", _cloud(data)))
+        out.append(("cloud", "Point cloud", ("_cloud", (data,))))
     if any(d.translation_mm > 1e-6 or d.rotation_deg > 1e-6 for d in data.extrinsics):
-        out.append(("extrinsics", "Extrinsic change", _extrinsics(data)))
+        out.append(("extrinsics", "Extrinsic change", ("_extrinsics", (data,))))
     return out
 
 
@@ -194,7 +208,7 @@ def _table(rows: list[tuple[str, str]]) -> str:
     return f"<table>{body}</table>"
 
 
-def render(data: RunData) -> str:
+def render(data: RunData, figure_map: FigureMap = map) -> str:
     summary = data.report.get("summary") or {k: v for k, v in data.report.items()
                                              if k not in ("queries", "format")}
     rows = [(key.replace("_", " "), f"{value:.3f}" if isinstance(value, float) else str(value))
@@ -207,9 +221,10 @@ def render(data: RunData) -> str:
                   "<ul>" + "".join(f"<li>{html.escape(s)}</li>" for s in data.suspicious)
                   + "</ul>")
     parts = []
-    for figure_id, caption, figure in figures(data):
+    specs = figure_specs(data)
+    for (figure_id, caption, _), png in zip(specs, figure_map(_draw, [s for *_, s in specs])):
         parts.append(f'<figure id="{figure_id}"><img alt="{html.escape(caption)}" '
-                     f'src="data:image/png;base64,{_png(figure)}"><figcaption>'
+                     f'src="data:image/png;base64,{png}"><figcaption>'
                      f"{html.escape(caption)}</figcaption></figure>")
     title = f"cusfm run {data.root.name}"
     status = data.report.get("status")
@@ -239,24 +254,27 @@ text-align:left}}</style></head>
 """
 
 
-def write_report_page(run_dir: str | Path, ground_truth: str | Path | None = None) -> Path:
-    """Write ``RUN_DIR/report.html`` (atomically) and return its path."""
+def write_report_page(run_dir: str | Path, ground_truth: str | Path | None = None,
+                      figure_map: FigureMap = map) -> Path:
+    """Write ``RUN_DIR/report.html`` (atomically) and return its path; ``figure_map`` draws
+    the figures (the bytes do not depend on it)."""
     from cusfm_ros.report.run_data import read_run_data
 
     path = Path(run_dir) / "report.html"
-    page = render(read_run_data(run_dir, ground_truth))
+    page = render(read_run_data(run_dir, ground_truth), figure_map)
     with atomic_write(path) as handle:
         handle.write(page)
     return path
 
 
-def write_page(run_dir: str | Path, ground_truth: str | Path | None = None) -> Path | None:
+def write_page(run_dir: str | Path, ground_truth: str | Path | None = None,
+               figure_map: FigureMap = map) -> Path | None:
     """``write_report_page`` for the end of a run: a failure to draw is a warning, never a
     failed map."""
     import logging
 
     try:
-        path = write_report_page(run_dir, ground_truth)
+        path = write_report_page(run_dir, ground_truth, figure_map)
     except Exception as exc:  # noqa: BLE001 - the run is done; the page is a view of it
         logging.getLogger(__name__).warning("report.html not written (%s: %s)",
                                             type(exc).__name__, exc)
