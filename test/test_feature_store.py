@@ -169,6 +169,10 @@ def test_read_only_stores_of_an_unchanged_file_share_what_they_read(tmp_path, rn
         first = store.features("a")
     with pytest.raises(ValueError, match="read-only"):
         first.keypoints_px[0, 0] = 1.0
+    with FeatureStore(tmp_path / "matches.h5", CONFIG) as store:  # matches alone
+        store.put_matches("a", "b", Matches(np.array([[0, 1]]), np.array([0.5], np.float32)))
+    with FeatureStore(tmp_path / "matches.h5", CONFIG, read_only=True) as store:
+        assert len(store.matches("a", "b")) == 1  # opened between two readers of features
     with FeatureStore(path, CONFIG, read_only=True) as store:
         with monkeypatch.context() as patched:  # no HDF5 read for what was read before
             patched.setattr(FeatureStore, "_features_group", lambda *_: 1 / 0)

@@ -59,8 +59,8 @@ _memo: tuple[tuple, dict[str, Features]] = ((), {})
 def _features_read_before(path: Path) -> dict[str, Features]:
     """The features already read (read-only) from the store at ``path`` in this process, while
     its file is unchanged (same device, inode, size and modification time); a store of
-    another file, or this one changed, starts afresh (so a long-lived process holds one
-    store's features at most). Every stage after extraction reads the features of most
+    features in another file, or this one changed, starts afresh (so a long-lived process
+    holds one store's features at most; stores of matches alone keep none). Every stage after extraction reads the features of most
     images again: from HDF5 that cost the GPU machine's main thread 0.6-1.6 s per stage at
     300 frames, where other threads wanted the interpreter too."""
     global _memo
@@ -136,7 +136,9 @@ class FeatureStore:
                 raise FormatError(self.path, None, "not a cusfm feature store",
                                   "rerun the stage that writes it with --overwrite")
             self._load_index()
-            self._read = _features_read_before(self.path)
+            features = self._file.get("features")
+            if features is not None and len(features):  # not a store of matches alone
+                self._read = _features_read_before(self.path)
             return self
         if "format" not in attrs:
             attrs["format"], attrs["config"] = FORMAT, self.config
