@@ -60,9 +60,10 @@ def _features_read_before(path: Path) -> dict[str, Features]:
     """The features already read (read-only) from the store at ``path`` in this process, while
     its file is unchanged (same device, inode, size and modification time); a store of
     features in another file, or this one changed, starts afresh (so a long-lived process
-    holds one store's features at most; stores of matches alone keep none). Every stage after extraction reads the features of most
-    images again: from HDF5 that cost the GPU machine's main thread 0.6-1.6 s per stage at
-    300 frames, where other threads wanted the interpreter too."""
+    holds one store's features at most; stores of matches alone keep none). Every stage
+    after extraction reads the features of most images again: from HDF5 that cost the GPU
+    machine's main thread 0.6-1.6 s per stage at 300 frames, where other threads wanted the
+    interpreter too."""
     global _memo
     info = path.stat()
     identity = (str(path.resolve()), info.st_dev, info.st_ino, info.st_size,

@@ -181,12 +181,7 @@ class LazyMatcher:
         return self._built().match_many(pairs)
 
     def submit_many(self, pairs):
-        """The matcher's ``submit_many`` (launch now, collect later) where it has one."""
-        matcher = self._built()
-        if hasattr(matcher, "submit_many"):
-            return matcher.submit_many(pairs)
-        found = matcher.match_many(pairs)
-        return lambda: found
+        return submit_pairs(self._built(), pairs)
 
 
 def with_batched_matches(items, matcher, pair_of, with_matches):
@@ -219,17 +214,20 @@ def with_batched_matches(items, matcher, pair_of, with_matches):
     yield from _fill(*launched, with_matches)
 
 
-def _submit(held, wanted, matcher):
-    """(held items, wanted pairs, the function that returns their matches) with the pairs
-    launched (``submit_many``; ``match_many`` at once for a matcher without it)."""
-    pairs = [pair for _, pair in wanted]
-    submit = getattr(matcher, "submit_many", None)
+def submit_pairs(matcher, pairs):
+    """The function that returns the matches of ``pairs``, launched now: the matcher's
+    ``submit_many`` where it has one, else its ``match_many`` at once."""
     if not pairs:
-        return held, wanted, list
-    if submit is not None:
-        return held, wanted, submit(pairs)
+        return list
+    if hasattr(matcher, "submit_many"):
+        return matcher.submit_many(pairs)
     found = matcher.match_many(pairs)
-    return held, wanted, lambda: found
+    return lambda: found
+
+
+def _submit(held, wanted, matcher):
+    """(held items, wanted pairs, the function that returns their matches)."""
+    return held, wanted, submit_pairs(matcher, [pair for _, pair in wanted])
 
 
 def _fill(held, wanted, collect, with_matches):
