@@ -87,9 +87,9 @@ class KeyframeOptions:
     image_format: str = "bmp"
     """How the keyframe images are stored, both lossless: ``bmp`` (uncompressed: written
     and read in 0.1 ms instead of PNG's 11 and 6 ms per 1241x376 colour image, which was
-    most of the keyframes stage and part of the features stage; the issue's "no PNG
-    re-encoding on the hot path") or ``png`` (compact: about 1.3-2x less disk). Images
-    deeper than 8 bits are PNG either way."""
+    most of the keyframes stage and part of the features stage: no image encoding on the
+    hot path) or ``png`` (compact: about 1.3-2x less disk). Images deeper than 8 bits are
+    PNG either way."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.max_bad_frame_fraction <= 1:
