@@ -64,11 +64,15 @@ def _two_view(points_cam: np.ndarray, points_map: np.ndarray, options: StereoPos
     return result.rotation, result.translation_direction, result.inlier_mask
 
 
+def _homogeneous(points: np.ndarray) -> np.ndarray:
+    return points if points.shape[1] == 3 else np.c_[points, np.ones(len(points))]
+
+
 def _sampson(map_from_cam: np.ndarray, points_cam: np.ndarray, points_map: np.ndarray):
-    """Sampson distances (N,) of one pose (4, 4), or (K, N) of K poses (K, 4, 4)."""
+    """Sampson distances (N,) of one pose (4, 4), or (K, N) of K poses (K, 4, 4); points
+    (N, 2) normalized, or (N, 3) homogeneous with z = 1."""
     essential = skew(map_from_cam[..., :3, 3]) @ map_from_cam[..., :3, :3]
-    x0 = np.c_[points_cam, np.ones(len(points_cam))]
-    x1 = np.c_[points_map, np.ones(len(points_map))]
+    x0, x1 = _homogeneous(points_cam), _homogeneous(points_map)
     ex0 = x0 @ np.swapaxes(essential, -1, -2)
     etx1 = x1 @ essential
     numerator = np.sum(x1 * ex0, axis=-1)
@@ -85,7 +89,8 @@ class _SampsonCost:
 
     def __init__(self, left, map_for_left, right, map_for_right, left_from_right: np.ndarray
                  ) -> None:
-        self.pairs = (left, map_for_left), (right, map_for_right)
+        self.pairs = ((_homogeneous(left), _homogeneous(map_for_left)),
+                      (_homogeneous(right), _homogeneous(map_for_right)))
         self.left_from_right = left_from_right
 
     def many(self, x: np.ndarray) -> np.ndarray:
