@@ -2,7 +2,7 @@
 
 No stage spells a path literal; each asks its ``RunDir``. Layout:
 
-    keyframes/            images (<camera>/<stamp_ns>.png or .bmp), keyframes.json (the internal
+    keyframes/            images (<camera>/<stamp_ns>.bmp, or .png), keyframes.json (the internal
                           keyframe record, nanosecond stamps), frames_meta.json (pyCuSFM
                           export), initial_poses.tum
     features/features.h5  keypoints and descriptors per image
