@@ -405,7 +405,7 @@ class TorchLightGlueMatcher:
                 return counts, found, None
             arrived = torch.cuda.Event()
             found = [t.to("cpu", non_blocking=True) for t in found]
-            arrived.record()
+            arrived.record(torch.cuda.current_stream(self.device))  # the pass's stream
         return counts, found, arrived
 
     @staticmethod
