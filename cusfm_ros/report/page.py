@@ -162,43 +162,43 @@ FigureMap = Callable[[Callable, Iterable], Iterable[str]]
 """``figure_map(_draw, specs)``: each figure's PNG in order (``map``, or on processes)."""
 
 
-def _draw(spec: tuple[str, tuple]) -> str:
-    """The base64 PNG of one figure: ``(drawing function's name, its arguments)``."""
-    name, arguments = spec
-    return _png(globals()[name](*arguments))
+def _draw(spec: tuple[Callable, tuple]) -> str:
+    """The base64 PNG of one figure: ``(drawing function, its arguments)``."""
+    draw, arguments = spec
+    return _png(draw(*arguments))
 
 
-def figure_specs(data: RunData) -> list[tuple[str, str, tuple[str, tuple]]]:
-    """(id, caption, (drawing function's name, its arguments)) for every figure the run's
-    data allows."""
+def figure_specs(data: RunData) -> list[tuple[str, str, tuple[Callable, tuple]]]:
+    """(id, caption, (drawing function, its arguments)) for every figure the run's data
+    allows: module-level functions and picklable arguments, for worker processes."""
     out = []
     if any(t is not None for t in (data.initial, data.refined, data.localized)):
         out.append(("trajectory-top", "Trajectory, top view", (
-            "_trajectories", (data, (0, 1), "trajectory, top view (x-y)"))))
+            _trajectories, (data, (0, 1), "trajectory, top view (x-y)"))))
         out.append(("trajectory-side", "Trajectory, side view", (
-            "_trajectories", (data, (0, 2), "trajectory, side view (x-z)"))))
+            _trajectories, (data, (0, 2), "trajectory, side view (x-z)"))))
     if data.ate:
-        out.append(("ate", "ATE over time", ("_ate_over_time", (data,))))
+        out.append(("ate", "ATE over time", (_ate_over_time, (data,))))
     if data.report.get("stages"):
-        out.append(("stage-times", "Time per stage", ("_stage_times", (data,))))
+        out.append(("stage-times", "Time per stage", (_stage_times, (data,))))
     if data.latency_s is not None and len(data.latency_s):
         median_ms = float(np.median(data.latency_s)) * 1e3
-        out.append(("latency", "Localization latency", ("_histogram", (
+        out.append(("latency", "Localization latency", (_histogram, (
             data.latency_s * 1e3, f"latency per query (median {median_ms:.0f} ms)",
             "milliseconds", 30))))
     if data.reprojection_px is not None and len(data.reprojection_px):
-        out.append(("reprojection", "Reprojection error", ("_histogram", (
+        out.append(("reprojection", "Reprojection error", (_histogram, (
             data.reprojection_px, "reprojection error per observation", "pixels",
             np.linspace(0, max(4.0, float(np.percentile(data.reprojection_px, 99))), 50)))))
     if data.track_lengths is not None and len(data.track_lengths):
         top = int(max(data.track_lengths.max(), 2))
-        out.append(("track-length", "Track length", ("_histogram", (
+        out.append(("track-length", "Track length", (_histogram, (
             data.track_lengths, "observations per point", "track length",
             np.arange(1.5, top + 1.5)))))
     if data.points_m is not None and len(data.points_m):
-        out.append(("cloud", "Point cloud", ("_cloud", (data,))))
+        out.append(("cloud", "Point cloud", (_cloud, (data,))))
     if any(d.translation_mm > 1e-6 or d.rotation_deg > 1e-6 for d in data.extrinsics):
-        out.append(("extrinsics", "Extrinsic change", ("_extrinsics", (data,))))
+        out.append(("extrinsics", "Extrinsic change", (_extrinsics, (data,))))
     return out
 
 
