@@ -68,17 +68,26 @@ def save(out: Path, stem: str, form: str, header: str, rows: list[dict], text: s
     (out / f"{stem}.md").write_text(text)
 
 
-def run_system(system: str, spec_path: Path, work: Path, args) -> dict:
-    """The system in a child process; its result, wall time and peak resident memory."""
+def run_system(system: str, spec_path: Path, work: Path, args, code: Path | None = None
+               ) -> dict:
+    """The system in a child process; its result, wall time and peak resident memory.
+    ``code``: another checkout's root, whose ``bench`` and ``cusfm_ros`` run instead of
+    these (``bench/gpu.py --against``)."""
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    command = [sys.executable, str(HERE / "compare_systems.py"), system,
+    bench = HERE if code is None else Path(code).resolve() / "bench"
+    command = [sys.executable, str(bench / "compare_systems.py"), system,
                str(spec_path), str(work), args.device, str(args.max_keypoints),
                *getattr(args, "cusfm_args", [])]
+    env = None
+    if code is not None:  # its package first on the path, run from its root
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            [str(bench.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}
     started = time.perf_counter()
     with open(work / "log.txt", "wb") as log:
         child = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
-                                 start_new_session=True)
+                                 start_new_session=True, env=env,
+                                 cwd=None if code is None else bench.parent)
         timed_out = False
         while True:
             pid, status, usage = os.wait4(child.pid, os.WNOHANG)

@@ -5,7 +5,12 @@ memory, and the ATE, so that speed never hides a worse map.
 
     python bench/gpu.py --out /tmp/gpu [--frames 100 300 1000] [--devices cuda cpu]
                         [--features sift|aliked|xfeat] [--adaptive] [--time-limit-s 1800]
-                        [--set KEY=VALUE ...]
+                        [--set KEY=VALUE ...] [--repeat N] [--against OTHER_CHECKOUT]
+
+``--repeat`` runs each row N times and ``--against`` alternates every run with one of
+another checkout (its ``bench`` and ``cusfm_ros``) on the same inputs: the lent GPU
+machines differ by up to 2x in CPU speed and some vary between runs, so only alternating
+runs on one machine compare two versions.
 
 Installs nothing: run it where ``make test`` runs, on a machine with a GPU. Writes
 ``OUT/gpu.json`` and ``OUT/gpu.md`` after every run. A run past the time limit is a row
@@ -24,14 +29,17 @@ import compare  # noqa: E402 - the bench folder is not a package
 
 def markdown(rows: list[dict], header: str) -> str:
     columns = compare.STAGE_COLUMNS
+    labelled = any(r.get("code") != "this" or r.get("run", 1) > 1 for r in rows)
+    label = "code, run | " if labelled else ""
     lines = [header, "", "Seconds per 100 frames by stage (total: the whole process)", "",
-             "| frames | device | " + " | ".join(columns) + " | total | peak RSS MB | "
-             "GPU peak MB | ATE SE(3) m |", "|---" * (len(columns) + 6) + "|"]
+             f"| {label}frames | device | " + " | ".join(columns) + " | total | peak RSS MB | "
+             "GPU peak MB | ATE SE(3) m |", "|---" * (len(columns) + 6 + bool(label)) + "|"]
     for r in rows:
         stages = [compare._cell(r["seconds_per_100_frames"].get(c), 1) for c in columns]
         total = r["failed"] or compare._cell(r["total_per_100_frames_s"], 1)
         ate = r["ate_m"].get("se3", {}).get("rmse")
-        lines.append(f"| {r['frames']} | {r['device']} | " + " | ".join(stages)
+        cell = f"{r['code']}, {r['run']} | " if labelled else ""
+        lines.append(f"| {cell}{r['frames']} | {r['device']} | " + " | ".join(stages)
                      + f" | {total} | {r['peak_rss_mb']:.0f} | "
                      f"{compare._cell(r['gpu_peak_mb'], 0)} | {compare._cell(ate, 4)} |")
     return "\n".join(lines) + "\n"
@@ -53,7 +61,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--time-limit-s", type=float, default=1800.0)
     parser.add_argument("--image-size", type=int, nargs=2, default=(1241, 376),
                         metavar=("WIDTH", "HEIGHT"))
+    parser.add_argument("--repeat", type=int, default=1, metavar="N",
+                        help="runs of each frame count and device")
+    parser.add_argument("--against", type=Path, metavar="OTHER_CHECKOUT",
+                        help="another checkout's root: each run is followed by one of it")
     args = parser.parse_args(argv)
+    if args.repeat < 1:
+        parser.error("--repeat must be >= 1")
+    if args.against is not None and not (args.against / "bench" / "compare_systems.py"
+                                         ).is_file():
+        parser.error(f"--against {args.against}: no bench/compare_systems.py there; give "
+                     "the root of a cusfm_ros checkout")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     header = (f"{compare.machine()}; `python bench/gpu.py "
@@ -68,11 +86,17 @@ def main(argv: list[str] | None = None) -> int:
             run = argparse.Namespace(device=device, max_keypoints=args.max_keypoints,
                                      time_limit_s=args.time_limit_s,
                                      cusfm_args=[a for kv in args.set for a in ("--set", kv)])
-            result = compare.run_system(system, spec_path, out / "runs" / f"{frames}_{device}",
-                                        run)
-            rows.append({**compare.row(result, spec), "device": device})
-            compare.save(out, "gpu", "cusfm_gpu_bench/1", header, rows,
-                         markdown(rows, header))
+            codes = [("this", None)] + ([("against", args.against)] if args.against else [])
+            for index in range(1, args.repeat + 1):
+                for code, root in codes:
+                    name = f"{frames}_{device}" + ("" if len(codes) == 1 and args.repeat == 1
+                                                   else f"_{code}_{index}")
+                    result = compare.run_system(system, spec_path, out / "runs" / name, run,
+                                                root)
+                    rows.append({**compare.row(result, spec), "device": device,
+                                 "code": code, "run": index})
+                    compare.save(out, "gpu", "cusfm_gpu_bench/1", header, rows,
+                                 markdown(rows, header))
     print(markdown(rows, header))
     return 0
 

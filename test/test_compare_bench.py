@@ -4,6 +4,7 @@ peers' BAL adjusters (bench/ba_peers.py) reach gtsam's optimum on a synthetic pr
 
 import importlib.util
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -73,6 +74,43 @@ def test_gpu_bench_runs_each_device_and_reports_the_stages(bench_out):
     assert row["gpu_peak_mb"] is None  # no GPU was used
     assert sum(row["seconds_per_100_frames"].values()) < row["total_per_100_frames_s"]
     assert "| 30 | cpu | " in (bench_out / "gpu.md").read_text()
+
+
+def test_gpu_bench_alternates_with_another_checkout(bench_out, tmp_path, capsys):
+    """``--against`` runs another checkout's code after each run of this one, on the same
+    inputs, ``--repeat`` times; the rows say which code ran (the other copy reports its own
+    version)."""
+    import shutil
+
+    import gpu
+
+    root = BENCH.parent
+    other = tmp_path / "other"
+    for folder in ("cusfm_ros", "bench", "config"):
+        shutil.copytree(root / folder, other / folder,
+                        ignore=shutil.ignore_patterns("__pycache__"))
+    init = other / "cusfm_ros" / "__init__.py"
+    init.write_text(re.sub(r'__version__ = "[^"]*"', '__version__ = "0.0.0+other"',
+                           init.read_text()))
+    out = tmp_path / "out"
+    (out / "inputs").mkdir(parents=True)
+    made = bench_out / "inputs"  # the input of the test above, when it ran (else made here)
+    for entry in made.iterdir() if made.is_dir() else ():
+        (out / "inputs" / entry.name).symlink_to(entry)
+    assert gpu.main(["--out", str(out), "--frames", "30", "--devices", "cpu", "--features",
+                     "sift", "--image-size", "640", "240", "--against", str(other),
+                     "--repeat", "2"]) == 0
+    rows = json.loads((out / "gpu.json").read_text())["rows"]
+    assert [(r["code"], r["run"], r["failed"]) for r in rows] == [
+        ("this", 1, None), ("against", 1, None), ("this", 2, None), ("against", 2, None)]
+    versions = [json.loads((out / "runs" / f"30_cpu_{code}_1" / "run" / "report.json")
+                           .read_text())["version"] for code in ("this", "against")]
+    assert versions[1] == "0.0.0+other" and versions[0] != versions[1]
+    text = (out / "gpu.md").read_text()
+    assert "| this, 1 | 30 | cpu | " in text and "| against, 2 | 30 | cpu | " in text
+    with pytest.raises(SystemExit):
+        gpu.main(["--out", str(out), "--against", str(tmp_path)])
+    assert "no bench/compare_systems.py there" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("solver", ["pycolmap", "pyceres"])
