@@ -158,15 +158,22 @@ def test_format_1_stores_are_read_and_appended_to(tmp_path, rng):
 
 def test_read_only_stores_of_an_unchanged_file_share_what_they_read(tmp_path, rng,
                                                                      monkeypatch):
-    """The stages after extraction each open the store read-only: features one of them read
-    come from memory for the next (read-only arrays: no stage can change another's), until
-    the file changes; a store written to reads from the file."""
+    """The stages after extraction each open the store read-only: the features extraction
+    wrote, and those one of them read, come from memory for the next (read-only arrays: no
+    stage can change another's), until the file changes; a store written to reads from the
+    file."""
     f0, f1 = features(rng, 50), features(rng, 70)
     path = tmp_path / "features.h5"
     with FeatureStore(path, CONFIG) as store:
         store.put_features("a", f0)
+        store.put_features("b", f1)
     with FeatureStore(path, CONFIG, read_only=True) as store:
-        first = store.features("a")
+        with monkeypatch.context() as patched:  # what was written: no HDF5 read
+            patched.setattr(FeatureStore, "_features_group", lambda *_: 1 / 0)
+            first = store.features("a")
+            assert first.descriptors.dtype == np.float32 and first.image_size == (640, 480)
+            np.testing.assert_array_equal(first.descriptors, f0.descriptors)
+            np.testing.assert_array_equal(store.keypoints("b"), f1.keypoints_px)
     with pytest.raises(ValueError, match="read-only"):
         first.keypoints_px[0, 0] = 1.0
     with FeatureStore(tmp_path / "matches.h5", CONFIG) as store:  # matches alone

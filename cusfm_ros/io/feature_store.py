@@ -65,13 +65,25 @@ def _features_read_before(path: Path) -> dict[str, Features]:
     machine's main thread 0.6-1.6 s per stage at 300 frames, where other threads wanted the
     interpreter too."""
     global _memo
-    info = path.stat()
-    identity = (str(path.resolve()), info.st_dev, info.st_ino, info.st_size,
-                info.st_mtime_ns)
+    identity = _identity(path)
     with _MEMO_LOCK:
         if _memo[0] != identity:
             _memo = (identity, {})
         return _memo[1]
+
+
+def _remember_written(path: Path, written: dict[str, Features]) -> None:
+    """The features a store just wrote (and closed), as the memo of its file as it is now:
+    the stage after extraction (the vocabulary's) then reads them from memory too."""
+    global _memo
+    identity = _identity(path)
+    with _MEMO_LOCK:
+        _memo = (identity, {name: _frozen(f) for name, f in written.items()})
+
+
+def _identity(path: Path) -> tuple:
+    info = path.stat()
+    return (str(path.resolve()), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns)
 
 
 def _frozen(features: Features) -> Features:
@@ -86,7 +98,8 @@ class FeatureStore:
     """``with FeatureStore(path, config) as store: store.put_features(name, f) ...``
 
     A read-only store remembers the features it reads for the next read-only store of the
-    same unchanged file in this process (``_features_read_before``)."""
+    same unchanged file in this process (``_features_read_before``), and a store that wrote
+    features remembers those it wrote."""
 
     def __init__(self, path: str | os.PathLike, config: dict, overwrite: bool = False,
                  recover: bool = False, reset_on_mismatch: bool = False,
@@ -106,6 +119,7 @@ class FeatureStore:
         self._pending: dict[tuple[str, str], Matches] = {}
         self._blocks: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._read: dict[str, Features] | None = None
+        self._put: dict[str, Features] = {}
 
     def _open(self):
         import h5py
@@ -166,6 +180,9 @@ class FeatureStore:
                 self._file.close()
                 self._file = None
                 self._blocks.clear()
+            if self._put and exc_info[0] is None:
+                _remember_written(self.path, self._put)
+            self._put = {}
 
     def _written(self) -> None:
         """An entry is complete: flush it to the file once the interval has passed."""
@@ -226,11 +243,17 @@ class FeatureStore:
         if _key(name) in root:
             del root[_key(name)]
         group = root.create_group(_key(name))
-        group.create_dataset("keypoints_px", data=features.keypoints_px.astype(np.float32))
-        group.create_dataset("scores", data=features.scores.astype(np.float32))
-        group.create_dataset("descriptors", data=features.descriptors.astype(np.float32))
-        group.attrs["image_size"] = np.asarray(features.image_size, np.int64)
+        # what a reader gets back, kept for the readers of this process
+        written = Features(features.keypoints_px.astype(np.float32),
+                           features.scores.astype(np.float32),
+                           features.descriptors.astype(np.float32),
+                           tuple(int(v) for v in features.image_size))
+        group.create_dataset("keypoints_px", data=written.keypoints_px)
+        group.create_dataset("scores", data=written.scores)
+        group.create_dataset("descriptors", data=written.descriptors)
+        group.attrs["image_size"] = np.asarray(written.image_size, np.int64)
         group.attrs["complete"] = True
+        self._put[name] = written
         self._written()
 
     def _features_group(self, name: str):
