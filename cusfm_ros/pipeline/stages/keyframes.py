@@ -22,7 +22,7 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -488,13 +488,14 @@ class KeyframeExtractor:
                 wanted[(name, stamp)] = (int(sample_index), name)
         streams: dict[str, CameraStream] = {c.image_topic: c for c in layout.cameras}
         world_from_base_all = {}
-        keyframes: list[Keyframe] = []
+        images: list[tuple[str, int, str, int]] = []
+        """(camera, stamp, image name, rig sample) of every image written, in bag order."""
         written = 0
         for camera in rig.cameras:
             (tmp / camera.name).mkdir(parents=True, exist_ok=True)
         def images_to_write():
             """(file, image) of every selected image, decoded here (the bag is read in this
-            thread); the PNG encoding runs on the CPU threads."""
+            thread); the encoding runs on the CPU threads."""
             for message in bag.messages(streams):
                 stream = streams[message.topic]
                 stamp = bag.header_stamp_ns(message)
@@ -516,9 +517,7 @@ class KeyframeExtractor:
                 image_name = f"{name}/{stamp}.{suffix}"
                 world_from_base_all[sample_index] = Rigid3.from_matrix(
                     check_finite(sample_poses[sample_index], "interpolated pose"))
-                # the pose comes after the pass (all images at once, 1 ms each alone)
-                keyframes.append(Keyframe(str(len(keyframes)), name, stamp, image_name,
-                                          str(sample_index), Rigid3.identity()))
+                images.append((name, stamp, image_name, sample_index))
                 yield tmp / image_name, image
 
         def write_image(item) -> bool:
@@ -535,7 +534,7 @@ class KeyframeExtractor:
         if wanted:
             raise BagError(f"{len(wanted)} selected images vanished between the two passes "
                            "over the bag; is it being written to?")
-        selected_images = len(keyframes) + len(bad_frames)
+        selected_images = len(images) + len(bad_frames)
         if bad_frames and len(bad_frames) > self.options.max_bad_frame_fraction * \
                 selected_images:
             raise BagError(f"{len(bad_frames)} of {selected_images} selected images cannot be "
@@ -543,18 +542,17 @@ class KeyframeExtractor:
                            f"{bad_frames[0]['stamp_ns']} ns), more than "
                            f"keyframes.max_bad_frame_fraction = "
                            f"{self.options.max_bad_frame_fraction}; the bag is damaged")
-        if not keyframes:
+        if not images:
             raise BagError("no selected image could be decoded")
-        # each image gets the body pose at its own stamp (cameras may trigger apart)
+        images.sort(key=lambda image: (image[1], image[0]))  # by stamp, then camera
+        # each image gets the body pose at its own stamp (cameras may trigger apart), all at
+        # once (1 ms per call one image at a time)
         world_from_base_at_images = world_from_base.interpolate(
-            np.array([k.stamp_ns for k in keyframes], np.int64))
-        keyframes = [replace(k, world_from_cam=Rigid3.from_matrix(pose)
-                             * rig[k.camera_name].rig_from_cam)
-                     for k, pose in zip(keyframes, world_from_base_at_images)]
-        order = sorted(range(len(keyframes)), key=lambda i: (keyframes[i].stamp_ns,
-                                                             keyframes[i].camera_name))
-        keyframes = [replace(keyframes[old], keyframe_id=str(new))
-                     for new, old in enumerate(order)]
+            np.array([stamp for _, stamp, _, _ in images], np.int64))
+        keyframes = [Keyframe(str(index), name, stamp, image_name, str(sample),
+                              Rigid3.from_matrix(pose) * rig[name].rig_from_cam)
+                     for index, ((name, stamp, image_name, sample), pose)
+                     in enumerate(zip(images, world_from_base_at_images))]
         keyframe_set = KeyframeSet(rig, keyframes, "EGO_MOTION")
         write_keyframes(tmp / "keyframes.json", keyframe_set)
         write_frames_meta(tmp / "frames_meta.json", keyframe_set)
