@@ -55,23 +55,3 @@ def test_degenerate_inputs_are_reported(rng):
     bad[0, 0] = np.nan
     with pytest.raises(GeometryError, match="NaN"):
         stereo_relative_pose(bad, map_l, right, map_r, LEFT_FROM_RIGHT)
-
-
-def test_batched_jacobian_equals_scipys_forward_differences(rng):
-    """The refinement's Jacobian (6 shifted poses in one pass) is scipy's 2-point one, and
-    the vectorized Sampson distances of K poses are each pose's own."""
-    from scipy.optimize._numdiff import approx_derivative
-
-    from cusfm_ros.core.relpose.stereo import _sampson, _SampsonCost
-
-    left, map_l, right, map_r = scene(rng, TRUTH, count=120, noise=0.5 / 500)
-    cost = _SampsonCost(left, map_l, right, map_r, LEFT_FROM_RIGHT.matrix())
-    for x in (np.r_[TRUTH.rotvec(), TRUTH.translation], np.r_[0.1, -0.3, 0.0, -2.0, 0.5, 0.0]):
-        np.testing.assert_allclose(cost.jacobian(x), approx_derivative(cost, x, "2-point"),
-                                   rtol=1e-9, atol=1e-12)
-    poses = np.stack([TRUTH.matrix(), Rigid3.from_rotvec([0.1, 0, 0], [0, 1, 2]).matrix()])
-    many = _sampson(poses, left, map_l)
-    assert many.shape == (2, len(left))
-    for k in range(2):
-        np.testing.assert_allclose(many[k], _sampson(poses[k], left, map_l), rtol=1e-12,
-                                   atol=1e-15)

@@ -76,6 +76,19 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], threa
             yield done, future.result()
 
 
+def background_map(function: Callable[[list[Item]], list[Result]], items: Iterable[Item],
+                   chunk: int) -> list[Result]:
+    """``function`` (a list -> a list of the same length) over consecutive ``chunk``-item
+    parts of ``items`` on one background thread, while this thread goes on producing the
+    items; the results concatenated in order. For array work that releases the GIL (numpy,
+    torch) on items that arrive slowly (the pose graph refines its stereo measurements as
+    the worker processes measure them)."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="cusfm-background",
+                            initializer=_block_signals) as pool:
+        futures = [pool.submit(function, part) for part in _chunks(items, chunk)]
+        return [result for future in futures for result in future.result()]
+
+
 def _worker_process(owner: int) -> None:
     """A worker process leaves Ctrl-C and SIGTERM to its parent, uses one BLAS thread, and
     ends when the process that owns the pool (``owner``) is gone: one killed outright, or

@@ -7,7 +7,7 @@ relative to a map view, from two essential matrices and the known stereo extrins
 2. ``map_from_right = map_from_left * left_from_right`` gives, for the translations,
    ``s2 d_mr - s1 d_ml = R_ml t_lr``: linear least squares for the two scales.
 3. Refinement of the 6-DoF ``map_from_left`` minimising the Sampson distances of the inliers of
-   both pairs (scipy ``least_squares``, soft-L1 loss).
+   both pairs (soft-L1 loss; ``stereo_refinement``, many poses at once).
 
 Points are normalized camera coordinates (x/z, y/z); any camera model gets them from
 ``unproject``.
@@ -15,13 +15,12 @@ Points are normalized camera coordinates (x/z, y/z); any camera model gets them 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
-from cusfm_ros.core.geometry import Rigid3, skew
+from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.core.relpose.stereo_refinement import StereoProblem, StereoRefiner
 from cusfm_ros.core.relpose.two_view import TwoViewOptions, estimate_two_view
 from cusfm_ros.errors import ConfigError, GeometryError
 
@@ -64,58 +63,9 @@ def _two_view(points_cam: np.ndarray, points_map: np.ndarray, options: StereoPos
     return result.rotation, result.translation_direction, result.inlier_mask
 
 
-def _homogeneous(points: np.ndarray) -> np.ndarray:
-    return points if points.shape[1] == 3 else np.c_[points, np.ones(len(points))]
-
-
-def _sampson(map_from_cam: np.ndarray, points_cam: np.ndarray, points_map: np.ndarray):
-    """Sampson distances (N,) of one pose (4, 4), or (K, N) of K poses (K, 4, 4); points
-    (N, 2) normalized, or (N, 3) homogeneous with z = 1."""
-    essential = skew(map_from_cam[..., :3, 3]) @ map_from_cam[..., :3, :3]
-    x0, x1 = _homogeneous(points_cam), _homogeneous(points_map)
-    ex0 = x0 @ np.swapaxes(essential, -1, -2)
-    etx1 = x1 @ essential
-    numerator = np.sum(x1 * ex0, axis=-1)
-    denominator = (ex0[..., 0] ** 2 + ex0[..., 1] ** 2 + etx1[..., 0] ** 2
-                   + etx1[..., 1] ** 2)
-    return numerator / np.sqrt(np.maximum(denominator, 1e-30))
-
-
-class _SampsonCost:
-    """The refinement's residuals of ``map_from_left`` = (rotation vector, translation) over
-    both pairs, and their forward-difference Jacobian with scipy's own steps, evaluated for
-    the 6 shifted poses in one vectorized pass (scipy's ``2-point`` makes 6 separate calls;
-    the refinement spent two thirds of its time there)."""
-
-    def __init__(self, left, map_for_left, right, map_for_right, left_from_right: np.ndarray
-                 ) -> None:
-        self.pairs = ((_homogeneous(left), _homogeneous(map_for_left)),
-                      (_homogeneous(right), _homogeneous(map_for_right)))
-        self.left_from_right = left_from_right
-
-    def many(self, x: np.ndarray) -> np.ndarray:
-        poses = np.zeros((len(x), 4, 4))
-        poses[:, :3, :3] = Rotation.from_rotvec(x[:, :3]).as_matrix()
-        poses[:, :3, 3], poses[:, 3, 3] = x[:, 3:], 1.0
-        (l_pts, lm_pts), (r_pts, rm_pts) = self.pairs
-        return np.concatenate([_sampson(poses, l_pts, lm_pts),
-                               _sampson(poses @ self.left_from_right, r_pts, rm_pts)], axis=1)
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        return self.many(x[None])[0]
-
-    def jacobian(self, x: np.ndarray) -> np.ndarray:
-        sign = np.where(x >= 0, 1.0, -1.0)
-        step = np.finfo(np.float64).eps ** 0.5 * sign * np.maximum(1.0, np.abs(x))
-        step = (x + step) - x  # exactly representable, as scipy does
-        values = self.many(np.vstack([x, x + np.diag(step)]))
-        return ((values[1:] - values[0]) / step[:, None]).T
-
-
-def stereo_relative_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.ndarray,
-                         map_for_right: np.ndarray, left_from_right: Rigid3,
-                         options: StereoPoseOptions = StereoPoseOptions()) -> StereoPoseResult:
-    """``map_from_left`` (metric) from normalized points: left<->map and right<->map matches."""
+def _linear_pose(left, map_for_left, right, map_for_right, left_from_right: Rigid3,
+                 options: StereoPoseOptions):
+    """Steps 1-2: the linear ``map_from_left``, both pairs' inlier masks and the scales."""
     baseline = float(np.linalg.norm(left_from_right.translation))
     if baseline < 1e-6:
         raise GeometryError("stereo pose: the stereo baseline is zero; check the stereo "
@@ -136,18 +86,23 @@ def stereo_relative_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.n
     if s1 <= 0 or s2 <= 0:  # both directions point from the camera to the map view
         raise GeometryError(f"stereo pose: inconsistent scales ({s1:.3g}, {s2:.3g}) from the "
                             "two pairs; a wrong essential matrix or degenerate motion")
-    initial = Rigid3(r_ml, s1 * d_ml)
-    if options.refine:
-        cost = _SampsonCost(left[inl_l], map_for_left[inl_l], right[inl_r],
-                            map_for_right[inl_r], left_from_right.matrix())
-        scale = options.ransac_threshold
-        solution = least_squares(cost, np.r_[initial.rotvec(), initial.translation],
-                                 jac=cost.jacobian, loss="soft_l1", f_scale=scale,
-                                 x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14,
-                                 max_nfev=200)
-        refined = Rigid3.from_rotvec(solution.x[:3], solution.x[3:])
-        # the Sampson cost fixes the scale only through the right pair; a refinement that
-        # runs far from the linear solution found a wrong minimum
+    return Rigid3(r_ml, s1 * d_ml), inl_l, inl_r, (float(s1), float(s2))
+
+
+@dataclass
+class UnrefinedStereoPose:
+    """A stereo pose after steps 1-2: the linear result and the refinement still to do
+    (``StereoRefiner`` solves many at once; ``checked`` then vets each refined pose)."""
+
+    linear: StereoPoseResult
+    problem: StereoProblem
+
+    def checked(self, refined_map_from_left: np.ndarray) -> StereoPoseResult:
+        """The result with the refined pose, or a ``GeometryError`` when the refinement ran
+        far from the linear solution (the Sampson cost fixes the scale only through the
+        right pair; a refinement that leaves the linear solution found a wrong minimum)."""
+        initial = self.linear.map_from_left
+        refined = Rigid3.from_matrix(refined_map_from_left)
         ratio = np.linalg.norm(refined.translation) / max(np.linalg.norm(initial.translation),
                                                           1e-12)
         cosine = float(refined.translation @ initial.translation) / max(
@@ -158,5 +113,31 @@ def stereo_relative_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.n
             raise GeometryError(f"stereo pose: the refinement left the linear solution "
                                 f"(scale x{ratio:.2f}, direction {turned_deg:.0f} deg); the "
                                 "matches do not determine the motion")
-        initial = refined
-    return StereoPoseResult(initial, int(inl_l.sum()), int(inl_r.sum()), (float(s1), float(s2)))
+        return replace(self.linear, map_from_left=refined)
+
+
+def unrefined_stereo_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.ndarray,
+                          map_for_right: np.ndarray, left_from_right: Rigid3,
+                          options: StereoPoseOptions = StereoPoseOptions()
+                          ) -> UnrefinedStereoPose:
+    """Steps 1-2 and the refinement problem of step 3 (normalized points: left<->map and
+    right<->map matches)."""
+    initial, inl_l, inl_r, scales = _linear_pose(left, map_for_left, right, map_for_right,
+                                                 left_from_right, options)
+    problem = StereoProblem(left[inl_l], map_for_left[inl_l], right[inl_r],
+                            map_for_right[inl_r], left_from_right.matrix(), initial.matrix(),
+                            options.ransac_threshold)
+    return UnrefinedStereoPose(StereoPoseResult(initial, int(inl_l.sum()), int(inl_r.sum()),
+                                                scales), problem)
+
+
+def stereo_relative_pose(left: np.ndarray, map_for_left: np.ndarray, right: np.ndarray,
+                         map_for_right: np.ndarray, left_from_right: Rigid3,
+                         options: StereoPoseOptions = StereoPoseOptions()) -> StereoPoseResult:
+    """``map_from_left`` (metric) from normalized points: left<->map and right<->map matches
+    (one pose; ``unrefined_stereo_pose`` and ``StereoRefiner`` refine many at once)."""
+    unrefined = unrefined_stereo_pose(left, map_for_left, right, map_for_right,
+                                      left_from_right, options)
+    if not options.refine:
+        return unrefined.linear
+    return unrefined.checked(StereoRefiner().solve([unrefined.problem])[0])

@@ -23,7 +23,8 @@ from cusfm_ros.core.graph.pose_graph import (LoopConstraint, PoseGraphOptimizer,
                                               PoseGraphOptions, PoseGraphResult)
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.relpose.loop_measurement import (LoopMeasurement, LoopView,
-                                                      measure_loop)
+                                                      UnrefinedLoop, measure_loop,
+                                                      refine_loops)
 from cusfm_ros.core.retrieval.loops import LoopRecord
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import GeometryError
@@ -34,7 +35,8 @@ from cusfm_ros.io.tum import write_tum
 from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
-from cusfm_ros.pipeline.parallel import call_on_process, ordered_map, process_map
+from cusfm_ros.pipeline.parallel import (background_map, call_on_process, ordered_map,
+                                         process_map)
 from cusfm_ros.pipeline.stages.loops import cached_matches, remember_matches
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
 
@@ -104,10 +106,16 @@ class _Graph:
             self.readout.append((self.node_of[first.image_name], base.inverse().matrix()))
 
 
-def _measure(arguments: tuple) -> LoopMeasurement | str:
-    """``measure_loop(*arguments)`` (in a worker process), or why it failed."""
+_REFINE_CHUNK = 128
+"""Stereo measurements refined per solve, on a thread while the workers measure the next
+(street 300, 2 cores: 64, 128 and 256 all 4.8-5.2 s for the stage)."""
+
+
+def _measure(arguments: tuple) -> LoopMeasurement | UnrefinedLoop | str:
+    """``measure_loop(*arguments)`` without the stereo refinement (in a worker process), or
+    why it failed."""
     try:
-        return measure_loop(*arguments)
+        return measure_loop(*arguments, refine=False)
     except GeometryError as exc:
         return str(exc)
 
@@ -122,11 +130,12 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                         features: dict[str, Features], matcher,
                         options: PoseGraphOptions = PoseGraphOptions(), frame_type: str = "rig",
                         seed: int = 0, cache: FeatureStore | None = None,
-                        extra: list[LoopConstraint] = (), threads: int = 0
-                        ) -> PoseGraphOutput:
+                        extra: list[LoopConstraint] = (), threads: int = 0,
+                        device: str = "cpu") -> PoseGraphOutput:
     """Refined world_from_rig per rig sample. ``extra`` constraints join the measured ones
     (benchmarks inject false loops). Missing matches are computed on ``threads`` CPU threads
-    (0: every core); the result does not depend on it."""
+    (0: every core); the result does not depend on it. The stereo measurements are refined
+    together on ``device`` (the run's: numpy, or torch on a GPU)."""
     rig = keyframes.rig
     graph = _Graph(keyframes, frame_type)
     images = {k.image_name: k for k in keyframes.keyframes}
@@ -169,9 +178,9 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
         return edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm
 
     # pairs to match go to a batched matcher (GPU) from this thread, the rest to threads;
-    # the measurement runs on processes: it is mostly Python (scipy's least squares calls
-    # back per iteration), so threads only fight for the GIL (measured on the H200 machine,
-    # 300 frames, 1267 loops: 105 s on 16 threads, 48 s in one thread)
+    # the measurement (RANSAC, the linear pose) runs on processes: with scipy's least squares
+    # per loop it was mostly Python, and threads only fought for the GIL (measured on the
+    # H200 machine, 300 frames, 1267 loops: 105 s on 16 threads, 48 s in one thread)
     items = with_batched_matches(inputs(), matcher, query_pair,
                                  lambda item, found: (*item[:4], found, item[5], True, item[7]))
     items = with_batched_matches(items, matcher, partner_pair,
@@ -199,8 +208,13 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                 matches_pm.indices if matches_pm is not None else None,
                 edge.two_view, prior, seed)
 
+    # RANSAC and the linear pose on the workers; the stereo refinements, many per solve, on
+    # a thread of this process as the measurements come
+    measured_all = background_map(lambda part: refine_loops(part, device),
+                                  (m for _, m in process_map(_measure, measurements(),
+                                                             threads)), _REFINE_CHUNK)
     constraints, kinds, skipped = [], {}, []
-    for index, (_, measured) in enumerate(process_map(_measure, measurements(), threads)):
+    for index, measured in enumerate(measured_all):
         edge, query, match = measured_items[index][:3]
         if isinstance(measured, str):
             skipped.append(f"{edge.query_image} - {edge.match_image}: {measured}")
@@ -260,7 +274,7 @@ class PoseGraphStage(Stage):
             output = optimize_pose_graph(keyframes, loops, features,
                                          LazyMatcher(options.features, options.device),
                                          options.pose_graph, options.frame_type, options.seed,
-                                         cache, extra, options.cpu_threads)
+                                         cache, extra, options.cpu_threads, options.device)
         write_tum(run.pose_graph_poses, output.world_from_rig)
         with atomic_write(run.pose_graph_summary) as handle:
             json.dump(output.summary, handle, indent=2)
