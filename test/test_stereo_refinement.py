@@ -16,6 +16,7 @@ from cusfm_ros.core.relpose.stereo import StereoPoseOptions, unrefined_stereo_po
 from cusfm_ros.core.relpose.stereo_refinement import (StereoProblem, StereoRefinementOptions,
                                                       StereoRefiner, _Batch)
 from cusfm_ros.core.rig import Rig, RigCamera
+from test_retrieval import arrays_of
 from test_stereo_pose import LEFT_FROM_RIGHT, TRUTH, scene
 
 FOCAL_PX = 500.0
@@ -104,13 +105,14 @@ def test_batches_give_each_problems_own_result(rng):
     np.testing.assert_allclose(split, alone, atol=1e-9)
 
 
-def test_torch_tensors_give_the_numpy_result(rng):
-    torch = pytest.importorskip("torch")
+@pytest.mark.parametrize("kind", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_torch_tensors_give_the_numpy_result(rng, kind):
+    """The GPU path's code (torch; CPU tensors in CI) refines to numpy's poses."""
     problems = [problem_of(rng, count=count, outliers=5) for count in (80, 120)]
     refiner = StereoRefiner()
     expected = refiner.solve(problems)
-    refiner.arrays = Arrays(torch, "cpu")  # the GPU path's code on CPU tensors
-    np.testing.assert_allclose(refiner.solve(problems), expected, atol=1e-10)
+    refiner.arrays = arrays_of(kind)
+    np.testing.assert_allclose(refiner.solve(problems), expected, atol=1e-9)
 
 
 def test_options_are_checked():
