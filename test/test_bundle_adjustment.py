@@ -100,6 +100,15 @@ def pixel_errors(camera, result, data):
     return np.linalg.norm(uv - data["uv"], axis=1)
 
 
+def test_observation_keys_are_gtsams_symbols():
+    gtsam = pytest.importorskip("gtsam")
+    from cusfm_ros.core.mapping.bundle_adjustment import _keys
+
+    indices = np.array([0, 1, 599, 2**31 + 7, 2**40])
+    for character in "xpe":
+        assert _keys(character, indices) == [gtsam.symbol(character, int(i)) for i in indices]
+
+
 @pytest.mark.parametrize("model", ["pinhole", "opencv", "fisheye", "ftheta_windshield"])
 def test_bundle_adjustment_converges_for_every_camera_model(rng, model):
     camera = CAMERAS[model]
