@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from cusfm_ros.errors import ConfigError
-from cusfm_ros.pipeline.parallel import background_map, ordered_map, process_map, thread_count
+from cusfm_ros.pipeline.parallel import chunks, ordered_map, process_map, thread_count
 
 
 def test_ordered_map_keeps_the_order_on_any_thread_count():
@@ -23,29 +23,18 @@ def test_ordered_map_keeps_the_order_on_any_thread_count():
         thread_count(-1)
 
 
-def test_background_map_works_on_parts_while_the_items_still_come():
-    """The first part is done on the background thread before the producer hands over the
-    rest (a map that read every item first would wait forever); results in order."""
-    import threading
-
-    first_done = threading.Event()
-    threads = []
-
-    def square_all(part):
-        threads.append(threading.current_thread().name)
-        if part[0] == 0:
-            first_done.set()
-        return [x * x for x in part]
+def test_chunks_take_the_items_as_they_come():
+    taken = []
 
     def produce():
-        for i in range(10):
-            if i == 6:
-                assert first_done.wait(60), "the first part did not run in the background"
+        for i in range(7):
+            taken.append(i)
             yield i
 
-    assert background_map(square_all, produce(), 3) == [i * i for i in range(10)]
-    assert len(threads) == 4 and all(t.startswith("cusfm-background") for t in threads)
-    assert background_map(square_all, iter([]), 3) == []
+    parts = chunks(produce(), 3)
+    assert next(parts) == [0, 1, 2] and taken == [0, 1, 2]  # no item read ahead
+    assert list(parts) == [[3, 4, 5], [6]]
+    assert list(chunks([], 3)) == []
 
 
 def test_process_map_keeps_the_order_and_runs_small_work_here():

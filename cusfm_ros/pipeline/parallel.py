@@ -76,19 +76,6 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], threa
             yield done, future.result()
 
 
-def background_map(function: Callable[[list[Item]], list[Result]], items: Iterable[Item],
-                   chunk: int) -> list[Result]:
-    """``function`` (a list -> a list of the same length) over consecutive ``chunk``-item
-    parts of ``items`` on one background thread, while this thread goes on producing the
-    items; the results concatenated in order. For array work that releases the GIL (numpy,
-    torch) on items that arrive slowly (the pose graph refines its stereo measurements as
-    the worker processes measure them)."""
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="cusfm-background",
-                            initializer=_block_signals) as pool:
-        futures = [pool.submit(function, part) for part in _chunks(items, chunk)]
-        return [result for future in futures for result in future.result()]
-
-
 def _worker_process(owner: int) -> None:
     """A worker process leaves Ctrl-C and SIGTERM to its parent, uses one BLAS thread, and
     ends when the process that owns the pool (``owner``) is gone: one killed outright, or
@@ -135,9 +122,9 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
     pool = ProcessPoolExecutor(processes, mp_context=_process_context(function),
                                initializer=_worker_process, initargs=(os.getpid(),))
     pending: deque = deque()
-    chunks = chain(_chunks(head, chunk), _chunks(iterator, chunk))
+    parts = chain(chunks(head, chunk), chunks(iterator, chunk))
     try:
-        for part in chunks:
+        for part in parts:
             pending.append((part, pool.submit(_apply_all, function, part)))
             while pending and (pending[0][1].done() or len(pending) >= 4 * processes):
                 done, future = pending.popleft()
@@ -215,7 +202,8 @@ def _process_context(function: Callable) -> multiprocessing.context.BaseContext:
     return context
 
 
-def _chunks(items: Iterable[Item], size: int) -> Iterator[list[Item]]:
+def chunks(items: Iterable[Item], size: int) -> Iterator[list[Item]]:
+    """Consecutive lists of ``size`` items (the last shorter), taken as they come."""
     iterator = iter(items)
     while part := list(islice(iterator, size)):
         yield part

@@ -23,8 +23,7 @@ from cusfm_ros.core.graph.pose_graph import (LoopConstraint, PoseGraphOptimizer,
                                               PoseGraphOptions, PoseGraphResult)
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.relpose.loop_measurement import (LoopMeasurement, LoopView,
-                                                      UnrefinedLoop, measure_loop,
-                                                      refine_loops)
+                                                      measure_loop, refine_loops)
 from cusfm_ros.core.retrieval.loops import LoopRecord
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import GeometryError
@@ -35,8 +34,7 @@ from cusfm_ros.io.tum import write_tum
 from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
-from cusfm_ros.pipeline.parallel import (background_map, call_on_process, ordered_map,
-                                         process_map)
+from cusfm_ros.pipeline.parallel import call_on_process, chunks, ordered_map, process_map
 from cusfm_ros.pipeline.stages.loops import cached_matches, remember_matches
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
 
@@ -106,18 +104,21 @@ class _Graph:
             self.readout.append((self.node_of[first.image_name], base.inverse().matrix()))
 
 
-_REFINE_CHUNK = 128
-"""Stereo measurements refined per solve, on a thread while the workers measure the next
-(street 300, 2 cores: 64, 128 and 256 all 4.8-5.2 s for the stage)."""
+_LOOPS_PER_TASK = 8
+"""Loops measured per worker task, their stereo refinements solved together (1.4 ms a loop
+in fours or more, 2.3 alone, scipy's least squares 4.2; street 300, one core)."""
 
 
-def _measure(arguments: tuple) -> LoopMeasurement | UnrefinedLoop | str:
-    """``measure_loop(*arguments)`` without the stereo refinement (in a worker process), or
-    why it failed."""
-    try:
-        return measure_loop(*arguments, refine=False)
-    except GeometryError as exc:
-        return str(exc)
+def _measure_all(arguments: list[tuple]) -> list[LoopMeasurement | str]:
+    """``measure_loop`` of a few loops (in a worker process), their stereo refinements in
+    one solve; a failed loop gives why."""
+    measured = []
+    for loop_arguments in arguments:
+        try:
+            measured.append(measure_loop(*loop_arguments, refine=False))
+        except GeometryError as exc:
+            measured.append(str(exc))
+    return refine_loops(measured)
 
 
 def _solve(arguments: tuple) -> PoseGraphResult:
@@ -130,12 +131,11 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                         features: dict[str, Features], matcher,
                         options: PoseGraphOptions = PoseGraphOptions(), frame_type: str = "rig",
                         seed: int = 0, cache: FeatureStore | None = None,
-                        extra: list[LoopConstraint] = (), threads: int = 0,
-                        device: str = "cpu") -> PoseGraphOutput:
+                        extra: list[LoopConstraint] = (), threads: int = 0
+                        ) -> PoseGraphOutput:
     """Refined world_from_rig per rig sample. ``extra`` constraints join the measured ones
     (benchmarks inject false loops). Missing matches are computed on ``threads`` CPU threads
-    (0: every core); the result does not depend on it. The stereo measurements are refined
-    together on ``device`` (the run's: numpy, or torch on a GPU)."""
+    (0: every core); the result does not depend on it."""
     rig = keyframes.rig
     graph = _Graph(keyframes, frame_type)
     images = {k.image_name: k for k in keyframes.keyframes}
@@ -178,9 +178,12 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
         return edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm
 
     # pairs to match go to a batched matcher (GPU) from this thread, the rest to threads;
-    # the measurement (RANSAC, the linear pose) runs on processes: with scipy's least squares
-    # per loop it was mostly Python, and threads only fought for the GIL (measured on the
-    # H200 machine, 300 frames, 1267 loops: 105 s on 16 threads, 48 s in one thread)
+    # the measurement runs on processes, a few loops per task: with scipy's least squares per
+    # loop it was mostly Python, and threads only fought for the GIL (measured on the H200
+    # machine, 300 frames, 1267 loops: 105 s on 16 threads, 48 s in one thread). Street 300
+    # on 2 cores, matches cached: 4.8-5.1 s so; 5.3-5.6 s one loop per task; 4.8-5.2 s with
+    # every refinement on one thread of this process, which on 16 cores would be the tail
+    # (1,378 loops x ~1 ms against ~0.4 s for their RANSACs on 15 workers)
     items = with_batched_matches(inputs(), matcher, query_pair,
                                  lambda item, found: (*item[:4], found, item[5], True, item[7]))
     items = with_batched_matches(items, matcher, partner_pair,
@@ -208,11 +211,9 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                 matches_pm.indices if matches_pm is not None else None,
                 edge.two_view, prior, seed)
 
-    # RANSAC and the linear pose on the workers; the stereo refinements, many per solve, on
-    # a thread of this process as the measurements come
-    measured_all = background_map(lambda part: refine_loops(part, device),
-                                  (m for _, m in process_map(_measure, measurements(),
-                                                             threads)), _REFINE_CHUNK)
+    measured_all = [measured for _, part in process_map(
+        _measure_all, chunks(measurements(), _LOOPS_PER_TASK), threads, chunk=1, minimum=8)
+        for measured in part]
     constraints, kinds, skipped = [], {}, []
     for index, measured in enumerate(measured_all):
         edge, query, match = measured_items[index][:3]
@@ -274,7 +275,7 @@ class PoseGraphStage(Stage):
             output = optimize_pose_graph(keyframes, loops, features,
                                          LazyMatcher(options.features, options.device),
                                          options.pose_graph, options.frame_type, options.seed,
-                                         cache, extra, options.cpu_threads, options.device)
+                                         cache, extra, options.cpu_threads)
         write_tum(run.pose_graph_poses, output.world_from_rig)
         with atomic_write(run.pose_graph_summary) as handle:
             json.dump(output.summary, handle, indent=2)
