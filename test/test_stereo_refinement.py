@@ -103,6 +103,7 @@ def test_batches_give_each_problems_own_result(rng):
     split = StereoRefiner(StereoRefinementOptions(chunk_points=1)).solve(problems)
     np.testing.assert_allclose(together, alone, atol=1e-9)
     np.testing.assert_allclose(split, alone, atol=1e-9)
+    assert StereoRefiner().solve([]).shape == (0, 4, 4)
 
 
 @pytest.mark.parametrize("kind", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])

@@ -6,7 +6,8 @@ computation.
 
 Written here because no library solves thousands of independent 6-parameter robust problems
 in one pass: scipy's ``least_squares`` takes one problem per call (and called back into
-Python for every evaluation: ~5 ms a loop, the pose graph's largest CPU cost), gtsam has no
+Python for every evaluation: 4.0 ms a loop on street 300, against 1.4 ms here in batches of
+four or more; it was the pose graph's largest CPU cost), gtsam has no
 Sampson factor. The point arithmetic is written against the array API standard
 (``array-api-compat``): numpy on the CPU path, torch on a CUDA GPU (``accelerator.Arrays``);
 the per-problem 6x6 systems and pose updates stay numpy on the host.
@@ -18,8 +19,10 @@ rotation updated on the left (``exp(dphi) R``) and the translation additively.
 
 The derivatives: with ``E = [t]x R``, a pair's residual is ``r = n / sqrt(d)``,
 ``n = x1' E x0`` and ``d = (E x0)_1^2 + (E x0)_2^2 + (E' x1)_1^2 + (E' x1)_2^2``; all of
-``n``, ``E x0`` and ``E' x1`` are linear in ``E``, so each point's values for ``E`` and for
-the six derivative matrices ``dE`` come from five small matrix products.
+``n``, ``E x0`` and ``E' x1`` are linear in ``E``, so each point's residual moves with ``E``
+along one 9-vector ``v``, and a pair's normal equations are ``D' (sum w v v') D`` with ``D``
+(9x6) how ``E`` moves with the pose: one 9x9 moment matrix per pair, no per-point Jacobian
+(``_Batch.evaluate``).
 """
 
 from __future__ import annotations
@@ -40,12 +43,12 @@ class StereoRefinementOptions:
     max_iterations: int = 100
     function_tolerance: float = 1e-10
     """A problem is done when an accepted step lowers its cost by less than this fraction
-    (on street-300 loops: poses within 4e-8 m (median) of scipy's at 1e-14, costs within
-    6e-11)."""
+    (street 300's loops: at scipy's minimum (tolerances 1e-14) within 6e-11 of its cost and
+    a median 4e-8 m; 10 of 1,362 end in another local minimum, as lower as higher)."""
     step_tolerance: float = 1e-12
     """... or moves its pose by less than this (radians + metres)."""
     chunk_points: int = 400_000
-    """Point slots (padded) per batch; bounds memory (~0.5 kB per slot)."""
+    """Point slots (padded, both pairs) per batch; bounds memory (~0.3 kB per slot)."""
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1 or self.chunk_points < 1:
@@ -179,10 +182,10 @@ class StereoRefiner:
                                                                len(problems[i].right)))
         start = 0
         while start < len(order):
-            stop, slots = start, 0
-            while stop < len(order) and (stop == start or slots + self._slots(
-                    problems[order[stop]]) * (stop - start + 1) <= self.options.chunk_points):
-                slots = self._slots(problems[order[stop]])
+            # padded to its last (largest) problem
+            stop = start + 1
+            while stop < len(order) and self._slots(problems[order[stop]]) * (
+                    stop - start + 1) <= self.options.chunk_points:
                 stop += 1
             chunk = order[start:stop]
             out[chunk] = self._solve_batch([problems[i] for i in chunk])

@@ -106,7 +106,7 @@ class _Graph:
 
 _LOOPS_PER_TASK = 8
 """Loops measured per worker task, their stereo refinements solved together (1.4 ms a loop
-in fours or more, 2.3 alone, scipy's least squares 4.2; street 300, one core)."""
+in fours or more, 2.3 alone, scipy's least squares 4.0; street 300, one core)."""
 
 
 def _measure_all(arguments: list[tuple]) -> list[LoopMeasurement | str]:
