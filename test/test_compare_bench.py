@@ -72,8 +72,12 @@ def test_gpu_bench_runs_each_device_and_reports_the_stages(bench_out):
     assert row["device"] == "cpu" and row["frames"] == 30 and row["failed"] is None
     assert row["ate_m"]["se3"]["rmse"] < 0.1
     assert row["gpu_peak_mb"] is None  # no GPU was used
-    assert sum(row["seconds_per_100_frames"].values()) < row["total_per_100_frames_s"]
-    assert "| 30 | cpu | " in (bench_out / "gpu.md").read_text()
+    outside = row["total_per_100_frames_s"] - sum(row["seconds_per_100_frames"].values())
+    assert 0 < outside == gpu.outside_stages(row)
+    line, = [x for x in (bench_out / "gpu.md").read_text().splitlines()
+             if x.startswith("| 30 | cpu | ")]
+    assert f" | {outside:.1f} | {row['total_per_100_frames_s']:.1f} | " in line
+    assert gpu.outside_stages({**row, "failed": "exit 1: ..."}) is None
 
 
 def test_gpu_bench_alternates_with_another_checkout(bench_out, tmp_path, capsys):
