@@ -34,6 +34,8 @@ class Rig:
     cameras: tuple[RigCamera, ...]
     base_frame_id: str = "base_link"
     _by_name: dict[str, RigCamera] = field(init=False, repr=False, compare=False)
+    _partners: dict = field(init=False, repr=False, compare=False)
+    """``stereo_partner``'s answers (the pose graph asks once per loop)."""
 
     def __post_init__(self) -> None:
         cameras = tuple(self.cameras)
@@ -47,6 +49,7 @@ class Rig:
             if duplicates:
                 raise CalibrationError(f"rig cameras share the {what} {duplicates}")
         object.__setattr__(self, "_by_name", {c.name: c for c in cameras})
+        object.__setattr__(self, "_partners", {})
 
     @property
     def names(self) -> list[str]:
@@ -74,6 +77,12 @@ class Rig:
     def stereo_partner(self, name: str, max_angle_deg: float = 5.0) -> str | None:
         """The camera forming a stereo pair with ``name``: parallel optical axes (within
         ``max_angle_deg``) and the shortest baseline above 2 cm; None if there is none."""
+        key = (name, max_angle_deg)
+        if key not in self._partners:
+            self._partners[key] = self._stereo_partner(name, max_angle_deg)
+        return self._partners[key]
+
+    def _stereo_partner(self, name: str, max_angle_deg: float) -> str | None:
         own = self[name].rig_from_cam
         best, best_distance = None, float("inf")
         for camera in self.cameras:
