@@ -150,6 +150,23 @@ def test_loop_measured_now_or_refined_later_is_the_same(rng):
     assert refine_loops(["why", now])[1] is now
 
 
+def test_a_refinement_that_leaves_the_linear_solution_is_a_reason_not_a_loop(rng):
+    """A linear pose three times too far: the refinement finds the true scale (the right
+    pair fixes it), which the check against the linear solution rejects."""
+    from dataclasses import replace
+
+    left, map_l, right, map_r = scene(rng, TRUTH, count=150)
+    unrefined = unrefined_stereo_pose(left, map_l, right, map_r, LEFT_FROM_RIGHT)
+    far = Rigid3(TRUTH.rotation, 3.0 * TRUTH.translation)
+    wrong = replace(unrefined, linear=replace(unrefined.linear, map_from_left=far),
+                    problem=replace(unrefined.problem, map_from_left=far.matrix()))
+    loop = UnrefinedLoop(wrong, Rigid3.identity(), Rigid3.identity())
+    reason, = refine_loops([loop])
+    assert "the refinement left the linear solution (scale x0.33" in reason
+    good, = refine_loops([UnrefinedLoop(unrefined, Rigid3.identity(), Rigid3.identity())])
+    assert good.rig_match_from_rig_query.is_close(TRUTH, atol_m=1e-6, atol_rad=1e-6)
+
+
 def test_unrefined_pose_keeps_the_linear_result(rng):
     left, map_l, right, map_r = scene(rng, TRUTH, count=150)
     unrefined = unrefined_stereo_pose(left, map_l, right, map_r, LEFT_FROM_RIGHT,
