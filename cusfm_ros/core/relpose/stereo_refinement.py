@@ -143,7 +143,8 @@ class _Batch:
         cost = xp.sum(self.mask * scale2 * (root - 1.0), axis=(1, 2))
         # v = (x1 x0' - r / sqrt(d) G) / sqrt(d), G = e_0 (E x0)_0 x0' + e_1 (E x0)_1 x0'
         #     + x1 (E' x1)_0 e_0' + x1 (E' x1)_1 e_1'; then scaled by sqrt(w)
-        sqrt_w = xp.sqrt(self.mask / root) * inv_root
+        sqrt_weight = xp.sqrt(self.mask / root)  # the robust weight's root (0: padding)
+        sqrt_w = sqrt_weight * inv_root
         shrink = -residual * inv_root
         v = xp.reshape(self.outer * sqrt_w[..., None], self.x0.shape[:-1] + (3, 3))
         for i in range(2):
@@ -151,8 +152,7 @@ class _Batch:
             v[..., :, i] += (shrink * sqrt_w * etx1[..., i])[..., None] * self.x1
         v = xp.reshape(v, self.outer.shape)
         moments = xp.matrix_transpose(v) @ v  # (L, 2, 9, 9)
-        first = (xp.matrix_transpose(v) @ (xp.sqrt(self.mask / root) * residual)[..., None]
-                 )[..., 0]  # (L, 2, 9)
+        first = (xp.matrix_transpose(v) @ (sqrt_weight * residual)[..., None])[..., 0]
         moments, first = self.arrays.get(moments), self.arrays.get(first)
         hessian = np.einsum("lpak,lpab,lpbj->lkj", derivatives, moments, derivatives)
         gradient = np.einsum("lpak,lpa->lk", derivatives, first)
