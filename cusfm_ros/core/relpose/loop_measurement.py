@@ -5,7 +5,8 @@ distance as scale.
 
 The stereo measurement's last step, its refinement, can wait: ``measure_loop(...,
 refine=False)`` returns an ``UnrefinedLoop`` and ``refine_loops`` refines many at once
-(``StereoRefiner``: one array computation, on the GPU where there is one)."""
+(``StereoRefiner``: one array computation; the pose graph refines a few loops per worker
+process)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import numpy as np
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.relpose.stereo import (StereoPoseOptions, UnrefinedStereoPose,
                                           unrefined_stereo_pose)
-from cusfm_ros.core.relpose.stereo_refinement import StereoRefinementOptions, StereoRefiner
+from cusfm_ros.core.relpose.stereo_refinement import StereoRefiner
 from cusfm_ros.core.rig import Rig
 from cusfm_ros.errors import GeometryError
 
@@ -52,16 +53,14 @@ class UnrefinedLoop:
                                "stereo")
 
 
-def refine_loops(measured: list, device: str = "cpu",
-                 options: StereoRefinementOptions = StereoRefinementOptions()) -> list:
+def refine_loops(measured: list) -> list:
     """``measured`` with every ``UnrefinedLoop`` refined (all in one ``StereoRefiner``
-    solve on ``device``) into a ``LoopMeasurement``, or into the ``GeometryError`` message
-    when its refinement failed; other items unchanged."""
+    solve) into a ``LoopMeasurement``, or into the ``GeometryError`` message when its
+    refinement failed; other items unchanged."""
     pending = [i for i, item in enumerate(measured) if isinstance(item, UnrefinedLoop)]
     if not pending:
         return list(measured)
-    refined = StereoRefiner(options, device).solve([measured[i].stereo.problem
-                                                    for i in pending])
+    refined = StereoRefiner().solve([measured[i].stereo.problem for i in pending])
     out = list(measured)
     for i, map_from_left in zip(pending, refined):
         try:
