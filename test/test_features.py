@@ -641,6 +641,31 @@ def test_reduced_precision_lightglue_on_cuda_keeps_the_fp32_matches(motorcycle):
             assert len(full) > 300 and len(common) >= 0.97 * len(full), reduced
 
 
+def test_half_precision_lightglue_keeps_its_positional_encoding_and_assignment_in_fp32():
+    """Under autocast only the transformer layers run in half precision: the positional
+    encoding and the match assignment give exactly their fp32 values (in fp16 the encoding's
+    phases and the assignment's similarities are where matches moved)."""
+    from cusfm_ros.models.nets.lightglue import LightGlueNet
+
+    torch.manual_seed(0)
+    net = LightGlueNet(layers=2).eval()
+    generator = torch.Generator().manual_seed(1)
+    keypoints = torch.rand(1, 300, 2, generator=generator) * 2 - 1
+    desc0, desc1 = torch.randn(2, 1, 300, 256, generator=generator)
+    mask = torch.ones(1, 300, dtype=torch.bool)
+    mask[0, 250:] = False
+    with torch.inference_mode():
+        encoding = net.posenc(keypoints)
+        assignment = net.log_assignment[-1](desc0, desc1, mask, mask)
+        with torch.autocast("cpu", torch.float16):
+            encoding_half = net.posenc(keypoints)
+            assignment_half = net.log_assignment[-1](desc0, desc1, mask, mask)
+            layer_half = net.transformers[0].self_attn.ffn(torch.cat([desc0, desc1], -1))
+    assert layer_half.dtype == torch.float16  # autocast was on
+    assert encoding_half.dtype == assignment_half.dtype == torch.float32
+    assert torch.equal(encoding_half, encoding) and torch.equal(assignment_half, assignment)
+
+
 def test_float32_matmul_precision_is_restored_after_the_block():
     """The matcher's TF32 switch sets torch's process-wide precision for one pass only, also
     when the pass raises."""

@@ -622,3 +622,61 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
                                       theirs.matches(name0, name1).indices)
     assert main(["map", str(loop_bag / "bag"), "--out", str(tmp_path / "bad"),
                  "--cpu-threads", "-1"]) == 1
+
+
+def test_loop_candidates_stand_for_their_stereo_pairs(loop_bag, tmp_path):
+    """With ``by_stereo_pair`` (the default) each pair of stereo pairs among the candidates
+    is matched once, from both query images to one match image (the two pairs of the pose
+    graph's stereo measurement), where image-by-image candidates matched up to four image
+    pairs for the same two places; the places whose loops are found stay the same."""
+    from dataclasses import replace
+
+    from cusfm_ros.core.features.knn import KnnMatcher
+    from cusfm_ros.io.vocabulary_file import load_vocabulary
+    from cusfm_ros.pipeline.stages.loops import StereoPairs, detect_loops
+    from cusfm_ros.pipeline.stores import load_keyframes, open_features
+
+    run = RunDir(tmp_path / "run")
+    assert main(["map", str(loop_bag / "bag"), "--out", str(run.root), "--steps",
+                 "keyframes", "features", "vocabulary", *FAST]) == 0
+    options = _sift_options()
+    keyframes = load_keyframes(run)
+    pairs = StereoPairs(keyframes)
+    images = {k.image_name: k for k in keyframes.keyframes}
+
+    class Recording(KnnMatcher):
+        def __init__(self):
+            super().__init__()
+            self.pairs = []
+
+        def match(self, features0, features1):
+            self.pairs.append((features0, features1))
+            return super().match(features0, features1)
+
+    with open_features(run, options) as store:
+        features = {k.image_name: store.features(k.image_name) for k in keyframes.keyframes}
+        name_of = {id(f): name for name, f in features.items()}
+        found = {}
+        for by_pair in (True, False):
+            matcher = Recording()
+            loops, counts = detect_loops(
+                keyframes, features, load_vocabulary(run.vocabulary), matcher,
+                replace(options.loops, by_stereo_pair=by_pair), 0, threads=1)
+            matched = [(images[name_of[id(a)]], images[name_of[id(b)]]) for a, b in matcher.pairs]
+            assert counts["verified_candidates"] == len(matched)
+            found[by_pair] = loops, matched
+    loops, matched = found[True]
+    groups = {}
+    for query, match in matched:
+        groups.setdefault((pairs.key(query), pairs.key(match)), []).append((query, match))
+    assert len(groups) > 10 and all(len(g) == 2 for g in groups.values())
+    for (q0, m0), (q1, m1) in groups.values():
+        assert m0 is m1 and q0.sample_id == q1.sample_id and q0.camera_name != q1.camera_name
+    old_loops, old_matched = found[False]
+    assert {(pairs.key(q), pairs.key(m)) for q, m in old_matched} == set(groups)
+    assert len(matched) < len(old_matched)
+
+    def places(records):
+        return {(images[x.query_image].sample_id, images[x.match_image].sample_id)
+                for x in records}
+    assert len(places(loops)) >= 0.9 * len(places(old_loops))

@@ -32,6 +32,13 @@ class LoopOptions:
     RANSAC: no more samples are drawn than find an all-inlier one at this inlier ratio
     (``ransac_iterations``): most candidates are not loops, and those ran to the limit."""
     ransac_threshold_px: float = 1.0
+    by_stereo_pair: bool = True
+    """A candidate stands for its stereo pairs (an image with its camera's stereo partner in
+    the same rig sample): the first candidate between two stereo pairs is matched from both
+    query images to the match image (the two pairs of the pose graph's stereo measurement)
+    and the other candidates between them are left out: they see the same place again.
+    Street 300 had 1,522 candidates between 481 such pairs of stereo pairs, so 962 image
+    pairs to match instead of 1,522. Images without a stereo partner are their own pair."""
 
     def __post_init__(self) -> None:
         if self.top_k < 1 or self.min_inliers < 5 or not 0 <= self.min_inlier_ratio <= 1:

@@ -51,6 +51,25 @@ def remember_matches(cache: FeatureStore | None, name0: str, name1: str, matches
         cache.put_matches(name0, name1, matches)
 
 
+class StereoPairs:
+    """Each keyframe's stereo pair: itself and its camera's stereo partner's image of the
+    same rig sample (``Rig.stereo_partner``), or itself alone."""
+
+    def __init__(self, keyframes: KeyframeSet) -> None:
+        self._rig = keyframes.rig
+        self._by_camera = {(k.sample_id, k.camera_name): k for k in keyframes.keyframes}
+
+    def images(self, keyframe) -> list:
+        """The keyframe, then its partner's image when there is one."""
+        partner = self._rig.stereo_partner(keyframe.camera_name)
+        other = self._by_camera.get((keyframe.sample_id, partner)) if partner else None
+        return [keyframe] if other is None else [keyframe, other]
+
+    def key(self, keyframe) -> tuple:
+        """The same for both images of a stereo pair."""
+        return (keyframe.sample_id, *sorted(k.camera_name for k in self.images(keyframe)))
+
+
 def loop_database(keyframes: KeyframeSet, features: dict[str, Features],
                   vocabulary: VocabularyTree, rows: dict | None = None) -> ImageDatabase:
     """Every keyframe in time order, quantized together; ``rows``: the bag-of-words rows of
@@ -79,10 +98,12 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
         database = loop_database(keyframes, features, vocabulary)
     by_name = {k.image_name: k for k in frames}
     path_m = keyframes.travelled_path_m(frames)
+    pairs = StereoPairs(keyframes) if options.by_stereo_pair else None
 
     def candidates():
         """(query index, query, match, score, cached matches or None, whether they are to be
         computed), in query order."""
+        seen = set()
         for index, query in enumerate(frames):
             if index % QUERY_BLOCK == 0:  # the next block's scores in one product
                 scores = database.similarities(range(index, min(index + QUERY_BLOCK,
@@ -93,9 +114,18 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
                 exclude=np.abs(path_m - path_m[index]) < options.exclude_within_path_m)
             for candidate in found:
                 match = by_name[candidate.image]
-                if match.stamp_ns < query.stamp_ns:  # each loop once, from its later image
-                    cached = cached_matches(cache, query.image_name, match.image_name)
-                    yield index, query, match, float(candidate.score), cached, cached is None
+                if match.stamp_ns >= query.stamp_ns:  # each loop once, from its later image
+                    continue
+                queries = [query]
+                if pairs is not None:
+                    key = (pairs.key(query), pairs.key(match))
+                    if key in seen:
+                        continue
+                    seen.add(key)
+                    queries = pairs.images(query)
+                for image in queries:
+                    cached = cached_matches(cache, image.image_name, match.image_name)
+                    yield index, image, match, float(candidate.score), cached, cached is None
             yield index, query, None, 0.0, None, False  # the query is done (progress)
 
     def pair_of(item):
@@ -143,7 +173,7 @@ class LoopsStage(Stage):
     inputs = ("keyframes", "features", "vocabulary")
     optional_inputs = ("vocabulary_bows",)
     outputs = ("loops", "loop_bows")
-    version = 3  # 2: loops/bows.npz; 3: rows from vocabulary/bows.npz
+    version = 4  # 2: loops/bows.npz; 3: rows from vocabulary/bows.npz; 4: by stereo pair
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
