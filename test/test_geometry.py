@@ -105,3 +105,29 @@ def test_invalid_poses_are_rejected():
         Rigid3.from_quat_xyzw([0, 0, 0, 2], [0, 0, 0])
     with pytest.raises(GeometryError, match="orthonormal"):
         Rigid3(np.diag([1.0, 1.0, -1.0]), np.zeros(3))
+
+
+def test_quaternion_matrices_are_scipys_to_the_bit_and_products_stay_checked_inputs():
+    """``Rigid3.from_quat_xyzw`` computes scipy's matrix itself (the same bits, also for
+    quaternions off unit norm within the tolerance), and products and inverses of checked
+    transforms are what the checked constructor gives."""
+    from cusfm_ros.core.geometry import normalize_quaternion
+
+    rng = np.random.default_rng(7)
+    quats = rng.normal(size=(2000, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    quats[:500] *= 1 + rng.uniform(-5e-4, 5e-4, size=(500, 1))
+    for quat in quats:
+        pose = Rigid3.from_quat_xyzw(quat, rng.normal(size=3))
+        assert np.array_equal(pose.rotation,
+                              Rotation.from_quat(normalize_quaternion(quat)).as_matrix())
+    a, b = (Rigid3.from_quat_xyzw(q, rng.normal(size=3)) for q in quats[:2])
+    for fast, checked in ((a * b, Rigid3(a.rotation @ b.rotation,
+                                         a.rotation @ b.translation + a.translation)),
+                          (a.inverse(), Rigid3(a.rotation.T, -a.rotation.T @ a.translation))):
+        assert np.array_equal(fast.matrix(), checked.matrix())
+        assert not fast.rotation.flags.writeable and not fast.translation.flags.writeable
+    with pytest.raises(GeometryError, match="NaN"):
+        Rigid3.from_quat_xyzw([0, 0, 0, 1], [np.nan, 0, 0])
+    with pytest.raises(GeometryError, match="unit quaternion"):
+        Rigid3.from_quat_xyzw([0, 0, 0, 2], [0, 0, 0])
