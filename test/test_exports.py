@@ -195,6 +195,9 @@ def test_map_descriptors_halved_through_torch_round_as_numpy_does(monkeypatch):
     assert sys.modules.get("torch") is torch
     with np.errstate(over="ignore"):  # 1e5 is inf in half precision
         np.testing.assert_array_equal(_half(values), values.astype(np.float16))
+        if torch.cuda.is_available():  # a GPU run's: on the device
+            torch.zeros(1, device="cuda")
+            np.testing.assert_array_equal(_half(values), values.astype(np.float16))
         monkeypatch.delitem(sys.modules, "torch")  # a CPU run: numpy's own
         np.testing.assert_array_equal(_half(values), values.astype(np.float16))
         assert _half(values).dtype == np.float16
