@@ -102,7 +102,7 @@ def main() -> None:
                                        repeats=5) / 32))
         # LightGlue's early exit, each pair leaving the batch at its own layer
         early = TorchLightGlueMatcher(LightGlueOptions(batch_pairs=16, depth_confidence=0.95,
-                                                       device="cuda"))
+                                                       half_precision=False, device="cuda"))
         for name, (a, b) in (("2x2048", (g0, g1)), ("2x1024", (f0, f1))):
             rows.append((f"LightGlue {name} per pair, batches of 16, fp32, early exit (0.95)",
                          median_ms(partial(early.match_many, [(a, b)] * 32), repeats=5) / 32))
@@ -110,7 +110,7 @@ def main() -> None:
         changing_shapes(torch, g0, g1, rows)
     print(f"keypoints {len(f0)}/{len(f1)}, matches {len(m32)}")
     reference = {tuple(m) for m in TorchLightGlueMatcher(LightGlueOptions(
-        batch_pairs=1, device="cuda")).match(g0, g1).indices}
+        batch_pairs=1, half_precision=False, device="cuda")).match(g0, g1).indices}
     for batch_pairs, precision, found in agreement:
         common = len(reference & {tuple(m) for m in found.indices})
         print(f"2x2048, batches of {batch_pairs}, {precision}: {len(found)} matches, {common} "

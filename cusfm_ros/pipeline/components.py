@@ -79,7 +79,9 @@ class MatcherOptions(_Choice):
     ratio test)."""
     lightglue: LightGlueOptions = field(default_factory=LightGlueOptions)
     knn: KnnOptions = field(default_factory=KnnOptions)
-    lighterglue: LightGlueOptions = field(default_factory=LightGlueOptions)
+    lighterglue: LightGlueOptions = field(
+        default_factory=lambda: LightGlueOptions(half_precision=False))
+    """fp32 by default: LighterGlue's accuracy in fp16 is not measured (LightGlue's is)."""
 
     def __post_init__(self) -> None:
         if self.name not in MATCHERS:
