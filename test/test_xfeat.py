@@ -18,7 +18,7 @@ from cusfm_ros.core.features.xfeat import XFeatExtractor, XFeatOptions, detect_a
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.io.tum import read_tum
 from cusfm_ros.models.store import ensure_models
-from cusfm_ros.pipeline.options import resolve_options
+from cusfm_ros.pipeline.options import preset_path, resolve_options
 from cusfm_ros.sim.generator import SimulationOptions, Simulator
 
 torch = pytest.importorskip("torch", reason="torch (build-time) checks the ONNX export")
@@ -166,6 +166,24 @@ def test_options_pair_xfeat_with_lighterglue():
                                "features.matcher.name": "lightglue"})
     assert resolve_options(None, {"features.extractor.name": "xfeat",
                                   "features.matcher.name": "knn"}).features.matcher.name == "knn"
+
+
+def test_lightglue_runs_in_fp16_on_a_gpu_by_default_and_lighterglue_in_fp32():
+    """LightGlue's fp16 (fp32 ends) is measured and on by default; LighterGlue's is not, and
+    a section that sets other LighterGlue options keeps it fp32 too."""
+    from cusfm_ros.core.features.lightglue import LightGlueOptions, LighterGlueOptions
+
+    assert LightGlueOptions().half_precision and not LighterGlueOptions().half_precision
+    for overrides in ({}, {"features.matcher.lighterglue.batch_pairs": 8},
+                      {"features.extractor.name": "xfeat"}):
+        matcher = resolve_options(None, overrides).features.matcher
+        assert matcher.lightglue.half_precision and not matcher.lighterglue.half_precision
+    chosen = resolve_options(None, {"features.matcher.lighterglue.half_precision": True,
+                                    "features.matcher.lightglue.half_precision": False})
+    assert chosen.features.matcher.lighterglue.half_precision
+    assert not chosen.features.matcher.lightglue.half_precision
+    preset = resolve_options(str(preset_path("mapper.yaml"))).features.matcher
+    assert preset.lightglue.half_precision and not preset.lighterglue.half_precision
 
 
 def test_torch_backend_equals_onnx_on_cpu(xfeat, lighterglue, photo):

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 from cusfm_ros.core.features.aliked import AlikedExtractor, AlikedOptions
 from cusfm_ros.core.features.knn import KnnMatcher, KnnOptions
 from cusfm_ros.core.features.lightglue import (LightGlueMatcher, LightGlueOptions,
-                                               LighterGlueMatcher)
+                                               LighterGlueMatcher, LighterGlueOptions)
 from cusfm_ros.core.features.onnx_session import has_gpu_provider
 from cusfm_ros.core.features.sift import SiftExtractor, SiftOptions
 from cusfm_ros.core.features.xfeat import XFeatExtractor, XFeatOptions
@@ -79,9 +79,7 @@ class MatcherOptions(_Choice):
     ratio test)."""
     lightglue: LightGlueOptions = field(default_factory=LightGlueOptions)
     knn: KnnOptions = field(default_factory=KnnOptions)
-    lighterglue: LightGlueOptions = field(
-        default_factory=lambda: LightGlueOptions(half_precision=False))
-    """fp32 by default: LighterGlue's accuracy in fp16 is not measured (LightGlue's is)."""
+    lighterglue: LighterGlueOptions = field(default_factory=LighterGlueOptions)
 
     def __post_init__(self) -> None:
         if self.name not in MATCHERS:

@@ -73,6 +73,14 @@ class LightGlueOptions:
         return 1 if self.width_confidence > 0 else self.batch_pairs
 
 
+@dataclass(frozen=True)
+class LighterGlueOptions(LightGlueOptions):
+    """``LightGlueOptions`` for XFeat's LighterGlue: fp32 by default on a GPU too (its
+    accuracy in fp16 is not measured; LightGlue's is)."""
+
+    half_precision: bool = False
+
+
 def normalize_keypoints(keypoints_px: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     size = np.asarray(image_size, np.float32)
     return ((keypoints_px - size / 2) / (size.max() / 2)).astype(np.float32)
