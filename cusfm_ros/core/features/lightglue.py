@@ -34,7 +34,7 @@ class LightGlueOptions:
     half_precision: bool = True
     """The torch backend on a GPU runs the network under fp16 autocast (matrix products in
     half precision; softmaxes, the positional encoding and the match assignment in fp32);
-    elsewhere it has no effect. On by default: street 300 on an H100, three seeds, 2-4 %
+    elsewhere it has no effect. On by default: street 300 on an H100, three seeds, 2-5 %
     faster runs at an ATE 2 % above fp32's (0.0104 against 0.0102 m, within the seeds'
     spread; docs/benchmarks.md, 2026-12-06)."""
     tf32: bool = False
