@@ -59,10 +59,14 @@ class StereoPairs:
         self._rig = keyframes.rig
         self._by_camera = {(k.sample_id, k.camera_name): k for k in keyframes.keyframes}
 
+    def partner(self, keyframe):
+        """The image of the keyframe's stereo partner camera in its rig sample, or None."""
+        partner = self._rig.stereo_partner(keyframe.camera_name)
+        return self._by_camera.get((keyframe.sample_id, partner)) if partner else None
+
     def images(self, keyframe) -> list:
         """The keyframe, then its partner's image when there is one."""
-        partner = self._rig.stereo_partner(keyframe.camera_name)
-        other = self._by_camera.get((keyframe.sample_id, partner)) if partner else None
+        other = self.partner(keyframe)
         return [keyframe] if other is None else [keyframe, other]
 
     def key(self, keyframe) -> tuple:

@@ -35,7 +35,8 @@ from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.parallel import call_on_process, chunks, ordered_map, process_map
-from cusfm_ros.pipeline.stages.loops import cached_matches, remember_matches
+from cusfm_ros.pipeline.stages.loops import (StereoPairs, cached_matches,
+                                            remember_matches)
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
 
 logger = logging.getLogger(__name__)
@@ -139,7 +140,7 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
     rig = keyframes.rig
     graph = _Graph(keyframes, frame_type)
     images = {k.image_name: k for k in keyframes.keyframes}
-    samples = keyframes.samples()
+    stereo_pairs = StereoPairs(keyframes)
     edges = [_Edge(x.query_image, x.match_image, "loop", x.match_cam_from_query_cam)
              for x in loops]
     if options.visual_sequential:
@@ -152,9 +153,7 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
             query, match = images[edge.query_image], images[edge.match_image]
             if query.sample_id == match.sample_id:
                 continue
-            partner_name = rig.stereo_partner(query.camera_name)
-            partner = next((k for k in samples[query.sample_id]
-                            if k.camera_name == partner_name), None) if partner_name else None
+            partner = stereo_pairs.partner(query)
             yield (edge, query, match, partner,
                    cached_matches(cache, query.image_name, match.image_name),
                    None if partner is None else
