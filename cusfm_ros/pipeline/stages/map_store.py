@@ -68,7 +68,7 @@ def _half(array: np.ndarray) -> np.ndarray:
     if torch is None:
         return array.astype(np.float16)
     tensor = torch.from_numpy(np.ascontiguousarray(array, np.float32))
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
+    if torch.cuda.is_initialized():  # never true without a GPU
         return tensor.cuda().half().cpu().numpy()
     return tensor.half().numpy()
 
