@@ -20,6 +20,7 @@ bag is refused unless ``overwrite``.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import logging
 import os
@@ -27,17 +28,19 @@ import platform
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from cusfm_ros import __version__
-from cusfm_ros.core.accelerator import check_device
+from cusfm_ros.core.accelerator import check_device, cuda_torch
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.digest import DigestCache
 from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.io.run_lock import run_dir_lock
 from cusfm_ros.pipeline.config import options_as_dict
+from cusfm_ros.pipeline.forked import can_fork_beside, run_forked_beside
 from cusfm_ros.pipeline.parallel import start_process_server, thread_count
 from cusfm_ros.pipeline.stage import Stage, StageContext
 
@@ -156,6 +159,12 @@ def _load_native_runtimes() -> None:
         pass
 
 
+def _nvidia_gpu_present() -> bool:
+    """The NVIDIA driver lists a GPU (no CUDA library is loaded to ask)."""
+    gpus = Path("/proc/driver/nvidia/gpus")
+    return Path("/dev/nvidia0").exists() or (gpus.is_dir() and any(gpus.iterdir()))
+
+
 class StageRunner:
     """Runs the registered stages named in ``steps`` on one run directory."""
 
@@ -201,8 +210,13 @@ class StageRunner:
         ``failed`` with the error and the stage it stopped in (then re-raised)."""
         run = RunDir(run_dir)
         steps = self.check_steps(steps)
-        check_device(self.options.device)
-        _load_native_runtimes()
+        first = next(stage for stage in self.stages if stage.name in steps)
+        # torch's import, 2.5-3.6 s of every GPU run, overlaps a first stage that needs no
+        # GPU library (the keyframes), which then runs on a forked child
+        beside = self._device_start if self._start_beside(first) else None
+        if beside is None:
+            check_device(self.options.device)
+            _load_native_runtimes()
         self._start_workers_server(steps)
         _check_run_dir(run)
         run.root.mkdir(parents=True, exist_ok=True)
@@ -221,7 +235,8 @@ class StageRunner:
                     current = stage.name
                     logger.info("=== stage %s (%d/%d) ===", stage.name, index + 1,
                                 len(steps))
-                    entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite)
+                    entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite,
+                                                          beside if index == 0 else None)
             except BaseException as exc:
                 self._drop_orphans(run)
                 digests.save()
@@ -240,8 +255,29 @@ class StageRunner:
             return report
 
     # ----------------------------------------------------------------------------- a stage
+    def _device_start(self) -> None:
+        """What runs beside the first stage: torch's import (which ``check_device`` does for
+        ``cuda`` and a later stage would do for ``auto``) and the device's check."""
+        cuda_torch(self.options.device)
+        check_device(self.options.device)
+        _load_native_runtimes()
+
+    def _start_beside(self, stage: Stage) -> bool:
+        """Whether ``stage`` runs on a forked child while this process imports torch: it uses
+        no GPU library, the device option will import torch and more than one core is
+        allowed. ``--device cuda`` on a machine without an NVIDIA GPU is refused before any
+        work, as before (torch's import is what tells on a machine that has one)."""
+        device = getattr(self.options, "device", "cpu")
+        if (stage.uses_device or device == "cpu" or not can_fork_beside()
+                or thread_count(getattr(self.options, "cpu_threads", 0)) < 2
+                or importlib.util.find_spec("torch") is None):
+            return False
+        return device != "cuda" or _nvidia_gpu_present()
+
     def _run_stage(self, stage: Stage, run: RunDir, bag, digests: DigestCache,
-                   overwrite: bool) -> dict:
+                   overwrite: bool, beside: Callable[[], None] | None = None) -> dict:
+        """Run ``stage`` unless it is up to date; ``beside``: work for this process while a
+        forked child runs the stage (``pipeline/forked.py``), done here either way."""
         for artifact in stage.inputs:
             if not getattr(run, artifact).exists():
                 producer = self.producer.get(artifact, "?")
@@ -262,6 +298,8 @@ class StageRunner:
         if not overwrite and same and record.get("status") == "complete" and outputs_present:
             logger.info("%s: up to date (same options and inputs); reusing its outputs",
                         stage.name)
+            if beside is not None:
+                beside()
             return {**record, "reused": True, "seconds": 0.0}
         context.resuming = (not overwrite and same and record.get("status") == "running")
         if context.resuming:
@@ -276,9 +314,13 @@ class StageRunner:
                 "inputs": context.input_digests, "external": payload["external"]}
         self._write_record(record_path, {**base, "status": "running"})
         _gpu_peak_mb(reset=True)
-        tick = time.perf_counter()
-        counts = stage.run(context)
-        seconds = time.perf_counter() - tick
+        if beside is None:
+            tick = time.perf_counter()
+            counts = stage.run(context)
+            seconds = time.perf_counter() - tick
+        else:  # the stage's own seconds, without waiting for what ran beside it
+            logger.info("%s: on a forked process while this one imports torch", stage.name)
+            counts, seconds = run_forked_beside(lambda: stage.run(context), beside)
         outputs = {a: digests.digest(getattr(run, a))
                    for a in stage.outputs + stage.optional_outputs}
         entry = {**base, "status": "complete", "seconds": round(seconds, 3),

@@ -57,6 +57,9 @@ class Stage:
     """Artifacts inside an output directory that other stages read on their own."""
     version: ClassVar[int] = 1
     """Bumped when the stage's output format or algorithm changes (forces a rerun)."""
+    uses_device: ClassVar[bool] = True
+    """False: the stage uses no GPU library (torch, ONNX Runtime); run first, it runs on a
+    forked child while the runner imports torch (``pipeline/forked.py``)."""
     worker_modules: ClassVar[tuple[str, ...]] = ()
     """Modules the stage's worker processes need: the runner starts the fork server with
     the run, and it imports them while the earlier stages work (``start_process_server``)."""

@@ -138,6 +138,7 @@ class KeyframesStage(Stage):
     name = "keyframes"
     sections = {"keyframes": KeyframeOptions}
     reads = ("keyframes", "seed")
+    uses_device = False
     outputs = ("keyframes_dir",)
     provides = ("keyframes", "frames_meta", "keyframe_initial_poses")
 
