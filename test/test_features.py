@@ -732,3 +732,28 @@ def test_images_extracted_on_threads_use_one_opencv_thread_each(tmp_path, motorc
                              threads=threads)
         assert Spy.seen == [expected] * 4
         assert cv2.getNumThreads() == before
+
+
+def test_descriptor_head_over_a_batch_equals_it_image_by_image():
+    """``SddhHead.forward_batch`` (the torch backend's) gives each image's keypoints the
+    descriptors ``forward`` (the ONNX export's) gives them alone: an image without keypoints
+    and keypoints on the borders included."""
+    from cusfm_ros.models.nets.aliked import SddhHead
+
+    generator = torch.Generator().manual_seed(3)
+    head = SddhHead("aliked-n16")
+    with torch.no_grad():
+        for parameter in head.parameters():
+            parameter.copy_(torch.randn(parameter.shape, generator=generator) * 0.1)
+    features = torch.randn((3, 128, 40, 60), generator=generator)
+    keypoints = [torch.rand((5, 2), generator=generator) * torch.tensor([59.0, 39.0]),
+                 torch.zeros((0, 2)),
+                 torch.cat([torch.rand((15, 2), generator=generator) * torch.tensor([59.0, 39.0]),
+                            torch.tensor([[0.0, 0.0], [59.0, 39.0]])])]
+    with torch.inference_mode():
+        batched = head.forward_batch(features, keypoints)
+        alone = torch.cat([head(features[i:i + 1], k) for i, k in enumerate(keypoints)
+                           if len(k)])
+    assert batched.shape == (22, 128)
+    torch.testing.assert_close(batched, alone, atol=1e-5, rtol=1e-5)
+    assert head.forward_batch(features, [torch.zeros((0, 2))] * 3).shape == (0, 128)

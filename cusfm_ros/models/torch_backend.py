@@ -121,12 +121,12 @@ class TorchAlikedExtractor:
             # detection stays on the device: the same algorithm as the numpy version
             detected = detect_keypoints_batch(scores, o.nms_radius, o.detection_threshold,
                                               o.max_keypoints, allowed=allowed)
-            packed = [torch.cat([keypoints.float(), kp_scores.float()[:, None],
-                                 self.model.desc_head(feature_map[i:i + 1], keypoints).float()],
-                                dim=1)
-                      for i, (keypoints, kp_scores) in enumerate(detected) if len(keypoints)]
+            keypoints = [keypoints for keypoints, _ in detected]
+            descriptors = self.model.desc_head.forward_batch(feature_map, keypoints)
             # one transfer back per batch
-            packed = torch.cat(packed).cpu().numpy() if packed else np.zeros((0, 3))
+            packed = torch.cat([torch.cat(keypoints).float(),
+                                torch.cat([s for _, s in detected]).float()[:, None],
+                                descriptors.float()], dim=1).cpu().numpy()
         out, start = [], 0
         for keypoints, _ in detected:
             if len(keypoints) == 0:
