@@ -21,6 +21,7 @@ import sys
 import threading
 import time
 import traceback
+import warnings
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -50,7 +51,12 @@ def run_forked_beside(work: Callable[[], Result], beside: Callable[[], None]
     for stream in (sys.stdout, sys.stderr):  # else both processes flush what is buffered
         stream.flush()
     read_fd, write_fd = os.pipe()
-    pid = os.fork()
+    with warnings.catch_warnings():
+        # Python 3.12 warns when the process has other OS threads: numpy's OpenBLAS pool,
+        # which its own fork handlers stop and restart; no Python thread runs (checked)
+        warnings.filterwarnings("ignore", "This process .* is multi-threaded",
+                                DeprecationWarning)
+        pid = os.fork()
     if pid == 0:  # the child: never returns
         os.close(read_fd)
         _child(work, write_fd)
