@@ -134,3 +134,40 @@ def test_ctrl_c_while_torch_imports_beside_the_keyframes_exits_130_in_one_line(
         "cusfm map: interrupted; nothing half-written was left, rerun the same command to "
         "resume"]
     assert not (run / "COMPLETE").exists()
+
+
+_KILLED_PARENT = """
+import os, sys, time
+from cusfm_ros.pipeline import forked
+forked.can_fork_beside = lambda: True
+def work():
+    open(sys.argv[1], "w").write(str(os.getpid()))
+    time.sleep(60)
+forked.run_forked_beside(work, lambda: time.sleep(60))
+"""
+
+
+def test_a_child_does_not_outlive_a_killed_run(tmp_path):
+    """``kill -9`` of the run: its child stops too, and writes nothing more into the run
+    directory that the next run redoes."""
+    pid_file = tmp_path / "child.pid"
+    parent = subprocess.Popen([sys.executable, "-c", _KILLED_PARENT, str(pid_file)],
+                              env={**os.environ, "PYTHONPATH": str(REPO)})
+    deadline = time.monotonic() + 60
+    while not (pid_file.is_file() and pid_file.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    child = int(pid_file.read_text())
+    parent.kill()
+    parent.wait(timeout=30)
+    deadline = time.monotonic() + 10
+    while _alive(child) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(child)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state != "Z"  # a zombie (reparented, not yet reaped) is gone

@@ -13,7 +13,7 @@ Python thread but this one runs (the caller checks both), and the child uses no 
 
 from __future__ import annotations
 
-import contextlib
+import ctypes
 import os
 import pickle
 import signal
@@ -26,13 +26,13 @@ from collections.abc import Callable
 from typing import TypeVar
 
 Result = TypeVar("Result")
+_PR_SET_PDEATHSIG = 1
 
 
 def can_fork_beside() -> bool:
     """A fork is safe here: the platform forks, torch is not loaded (a CUDA context or its
     thread pools must not be copied) and this process runs no Python thread but this one."""
-    return (hasattr(os, "fork") and hasattr(signal, "pthread_sigmask")
-            and "torch" not in sys.modules and threading.active_count() == 1
+    return (hasattr(os, "fork") and "torch" not in sys.modules and threading.active_count() == 1
             and threading.current_thread() is threading.main_thread())
 
 
@@ -51,25 +51,32 @@ def run_forked_beside(work: Callable[[], Result], beside: Callable[[], None]
     for stream in (sys.stdout, sys.stderr):  # else both processes flush what is buffered
         stream.flush()
     read_fd, write_fd = os.pipe()
-    with warnings.catch_warnings():
-        # Python 3.12 warns when the process has other OS threads: numpy's OpenBLAS pool,
-        # which its own fork handlers stop and restart; no Python thread runs (checked)
-        warnings.filterwarnings("ignore", "This process .* is multi-threaded",
-                                DeprecationWarning)
-        pid = os.fork()
-    if pid == 0:  # the child: never returns
-        os.close(read_fd)
-        _child(work, write_fd)
-    os.close(write_fd)
-    try:
-        with _signals_deferred():
+    parent = os.getpid()
+    deferred = _DeferredSignals()
+    with deferred:
+        with warnings.catch_warnings():
+            # Python 3.12 warns when the process has other OS threads: numpy's OpenBLAS
+            # pool, which its own fork handlers stop and restart; no Python thread runs
+            warnings.filterwarnings("ignore", "This process .* is multi-threaded",
+                                    DeprecationWarning)
+            pid = os.fork()
+        if pid == 0:  # the child: its own handlers back, and never returns
+            deferred.restore()
+            os.close(read_fd)
+            _die_with(parent)
+            # a signal that reached the child before its handlers were back acts first
+            _child(lambda: (deferred.deliver(), work())[1], write_fd)
+        os.close(write_fd)
+        pipe = os.fdopen(read_fd, "rb")
+        try:
             beside()
-    except BaseException:
-        os.close(read_fd)  # first: a child blocked writing its result gets EPIPE
-        _stop(pid)
-        raise
+        except BaseException:
+            pipe.close()  # first: a child blocked writing its result gets EPIPE
+            _stop(pid)
+            raise
     try:
-        with os.fdopen(read_fd, "rb") as pipe:
+        with pipe:
+            deferred.deliver()  # a Ctrl-C or SIGTERM that came during ``beside`` acts now
             payload = pipe.read()
         os.waitpid(pid, 0)
     except BaseException:  # Ctrl-C or SIGTERM while waiting: the child stops too
@@ -83,18 +90,51 @@ def run_forked_beside(work: Callable[[], Result], beside: Callable[[], None]
     raise _rebuilt(*rest)
 
 
-@contextlib.contextmanager
-def _signals_deferred():
-    """Ctrl-C and SIGTERM wait until ``beside`` is done, then act: one that landed inside a
-    native module's initialization (torch, ONNX Runtime) turned into "ImportError:
-    initialization failed" and a traceback instead of exit 130 (measured with ONNX Runtime;
-    ``runner._load_native_runtimes``). The child runs with the mask it was forked with."""
-    deferred = {signal.SIGINT, signal.SIGTERM}
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, deferred)
+class _DeferredSignals:
+    """While entered, Ctrl-C and SIGTERM are only recorded; ``deliver`` then re-raises them
+    to the handlers they had. One that landed inside a native module's initialization
+    (torch's, ONNX Runtime's) turned into "ImportError: initialization failed" and a
+    traceback instead of exit 130 (measured with ONNX Runtime; see
+    ``runner._load_native_runtimes``). Python-level handlers, not a signal mask: the kernel
+    hands a process's signal to any thread that does not block it (numpy's OpenBLAS
+    threads), and Python then runs its handler in the main thread all the same."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.previous: dict = {}
+        self.received: list[int] = []
+
+    def __enter__(self) -> _DeferredSignals:
+        for signum in self.SIGNALS:
+            self.previous[signum] = signal.signal(signum, self._record)
+        return self
+
+    def _record(self, signum, frame) -> None:
+        self.received.append(signum)
+
+    def restore(self) -> None:
+        for signum, handler in self.previous.items():
+            signal.signal(signum, handler)
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
+
+    def deliver(self) -> None:
+        for signum in dict.fromkeys(self.received):
+            signal.raise_signal(signum)
+
+
+def _die_with(parent: int) -> None:
+    """The child gets SIGTERM when the parent dies (Linux's ``PR_SET_PDEATHSIG``), so a
+    ``kill -9`` of the run leaves no child writing into the run directory that the next run
+    redoes; where there is no ``prctl`` it exits if the parent is already gone."""
     try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
+    except (OSError, AttributeError):  # not Linux
+        pass
+    if os.getppid() != parent:  # died before the request took effect
+        os._exit(1)
 
 
 def _child(work: Callable[[], object], write_fd: int) -> None:
@@ -120,10 +160,19 @@ def _child(work: Callable[[], object], write_fd: int) -> None:
         os._exit(status)  # no atexit handlers: they belong to the parent
 
 
-def _stop(pid: int) -> None:
+def _stop(pid: int, grace_s: float = 3.0) -> None:
+    """SIGTERM (the pipeline's ``Cancelled``: atomic writes drop their temporary files),
+    then SIGKILL after ``grace_s``: a SIGTERM that reaches the child in the instant its own
+    handlers come back from the deferring ones is lost."""
     try:
         os.kill(pid, signal.SIGTERM)
-        os.waitpid(pid, 0)
+        deadline = time.monotonic() + grace_s
+        while os.waitpid(pid, os.WNOHANG) == (0, 0):
+            if time.monotonic() > deadline:
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+                return
+            time.sleep(0.01)
     except (ProcessLookupError, ChildProcessError):
         pass
 
