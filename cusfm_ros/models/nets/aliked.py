@@ -171,20 +171,30 @@ class SddhHead(nn.Module):
         flat = (rows * w + cols).reshape(-1)  # (N*K*K,)
         patches = fmap.reshape(c, h * w)[:, flat].reshape(c, n, self.kernel, self.kernel)
         patches = patches.permute(1, 0, 2, 3)  # (N, C, K, K)
+        grid = self._sample_grid(patches.reshape(n, -1), keypoints_px, h, w, max_offset)
+        sampled = F.grid_sample(features, grid.reshape(1, n * self.positions, 1, 2),
+                                mode="bilinear", align_corners=True)
+        return self._describe(sampled.reshape(c, n, self.positions).permute(1, 0, 2))
+
+    def _sample_grid(self, patches: torch.Tensor, keypoints_px: torch.Tensor, h: int, w: int,
+                     max_offset: torch.Tensor) -> torch.Tensor:
+        """(N, C*K*K) patches, each channel's K x K in row order -> the M deformable sample
+        positions of each keypoint (N, M, 2), in ``grid_sample``'s [-1, 1]."""
+        n = patches.shape[0]
         # the K x K convolution over K x K patches and the 1 x 1 one after it are matrix
         # products: as convolutions, cuDNN planned them anew for every image's keypoint count
         # (2.3 + 0.9 of the features stage's 10 s on an H100 at 300 frames)
         first, _, second = self.offset_conv
-        offset = F.linear(patches.reshape(n, -1), first.weight.reshape(first.out_channels, -1),
-                          first.bias)
+        offset = F.linear(patches, first.weight.reshape(first.out_channels, -1), first.bias)
         offset = F.linear(F.selu(offset), second.weight[:, :, 0, 0], second.bias)
         offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
         offset = offset.reshape(n, 2, self.positions).permute(0, 2, 1)  # (N, M, 2)
         position = keypoints_px[:, None, :] + offset
-        scale = torch.stack([torch.tensor(w - 1), torch.tensor(h - 1)]).to(fmap)
-        grid = (2.0 * position / scale - 1.0).reshape(1, n * self.positions, 1, 2)
-        sampled = F.grid_sample(features, grid, mode="bilinear", align_corners=True)
-        sampled = sampled.reshape(c, n, self.positions).permute(1, 0, 2)  # (N, C, M)
+        scale = torch.stack([torch.tensor(w - 1), torch.tensor(h - 1)]).to(patches)
+        return 2.0 * position / scale - 1.0
+
+    def _describe(self, sampled: torch.Tensor) -> torch.Tensor:
+        """(N, C, M) features at the sample positions -> unit descriptors (N, C)."""
         sampled = F.selu(torch.matmul(self.sf_conv.weight[:, :, 0, 0], sampled))  # 1 x 1 conv
         descriptors = torch.einsum("ncp,pcd->nd", sampled, self.agg_weights)
         return F.normalize(descriptors, p=2, dim=1)
@@ -215,15 +225,8 @@ class SddhHead(nn.Module):
         cols = (corner_x[:, None, None] + steps[None, None, :]).expand(n, k, k).reshape(-1)
         patches = features[image.repeat_interleave(k * k), :, rows, cols]  # (N*K*K, C)
         patches = patches.reshape(n, k * k, c).permute(0, 2, 1)  # (N, C, K*K) as forward's
-        first, _, second = self.offset_conv
-        offset = F.linear(patches.reshape(n, -1), first.weight.reshape(first.out_channels, -1),
-                          first.bias)
-        offset = F.linear(F.selu(offset), second.weight[:, :, 0, 0], second.bias)
-        offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
-        offset = offset.reshape(n, 2, m).permute(0, 2, 1)  # (N, M, 2)
-        position = keypoints[:, None, :] + offset
-        scale = torch.stack([torch.tensor(w - 1), torch.tensor(h - 1)]).to(features)
-        grid = (2.0 * position / scale - 1.0).reshape(n * m, 2)
+        grid = self._sample_grid(patches.reshape(n, -1), keypoints, h, w, max_offset)
+        grid = grid.reshape(n * m, 2)
         padded = grid.new_zeros((b, max(counts) * m, 1, 2))
         start = 0
         for i, count in enumerate(counts):
@@ -232,10 +235,7 @@ class SddhHead(nn.Module):
         sampled = F.grid_sample(features, padded, mode="bilinear", align_corners=True)
         sampled = torch.cat([sampled[i, :, :count * m, 0] for i, count in enumerate(counts)],
                             dim=1)  # (C, N*M)
-        sampled = sampled.reshape(c, n, m).permute(1, 0, 2)  # (N, C, M)
-        sampled = F.selu(torch.matmul(self.sf_conv.weight[:, :, 0, 0], sampled))
-        descriptors = torch.einsum("ncp,pcd->nd", sampled, self.agg_weights)
-        return F.normalize(descriptors, p=2, dim=1)
+        return self._describe(sampled.reshape(c, n, m).permute(1, 0, 2))
 
 
 class Aliked(nn.Module):
