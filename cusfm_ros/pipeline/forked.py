@@ -25,6 +25,8 @@ import warnings
 from collections.abc import Callable
 from typing import TypeVar
 
+from cusfm_ros.errors import CusfmError
+
 Result = TypeVar("Result")
 _PR_SET_PDEATHSIG = 1
 
@@ -64,8 +66,11 @@ def run_forked_beside(work: Callable[[], Result], beside: Callable[[], None]
             deferred.restore()
             os.close(read_fd)
             _die_with(parent)
-            # a signal that reached the child before its handlers were back acts first
-            _child(lambda: (deferred.deliver(), work())[1], write_fd)
+            def delivered_then_work():
+                deferred.deliver()  # a signal that came before the handlers were back
+                return work()
+
+            _child(delivered_then_work, write_fd)
         os.close(write_fd)
         pipe = os.fdopen(read_fd, "rb")
         try:
@@ -183,8 +188,6 @@ def _rebuilt(cls: type, message: str, child_traceback: str) -> BaseException:
     construct, so the instance is made without calling their ``__init__``)."""
     error = cls.__new__(cls)
     BaseException.__init__(error, *([message] if message else []))
-    from cusfm_ros.errors import CusfmError
-
     if not isinstance(error, (CusfmError, KeyboardInterrupt)) and hasattr(error, "add_note"):
         error.add_note("in the forked stage process:\n" + child_traceback)
     return error
