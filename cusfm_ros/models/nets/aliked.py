@@ -40,9 +40,16 @@ class DeformConv3x3(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, c, h, w = x.shape
-        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(x) / 4.0
-        offset = self.offset_conv(x)
-        offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
+        if torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export():
+            # exported: the limit follows the input's (dynamic) size
+            max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(x) / 4.0
+            offset = self.offset_conv(x)
+            offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
+        else:
+            # a Python number: a CPU tensor copied to the GPU here synchronized the stream,
+            # four times per batch, so the host could not queue the network ahead of it
+            limit = max(h, w) / 4.0
+            offset = self.offset_conv(x).clamp(-limit, limit)
         offset = offset.reshape(b, 9, 2, h, w)  # per tap: (dy, dx), taps in row-major order
         taps = torch.arange(9, device=x.device)
         tap_y = (taps // 3 - 1).to(x.dtype).reshape(1, 9, 1, 1)
