@@ -102,11 +102,15 @@ class OffsetEstimate:
 
 def _robust_fit(design: np.ndarray, target: np.ndarray, iterations: int = 8
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Huber IRLS least squares; (coefficients, standard errors)."""
+    """Huber IRLS least squares; (coefficients, standard errors). Each step solves the
+    weighted normal equations (a few columns; ``lstsq`` of the small system keeps a
+    rank-deficient design's minimum-norm answer): an SVD of the whole (2n, 4) design per step
+    took 0.8 s of a 300-frame map."""
     weights = np.ones(len(target))
     coef = np.zeros(design.shape[1])
     for _ in range(iterations):
-        coef = np.linalg.lstsq(design * weights[:, None], target * weights, rcond=None)[0]
+        weighted = design * (weights ** 2)[:, None]
+        coef = np.linalg.lstsq(weighted.T @ design, weighted.T @ target, rcond=None)[0]
         residual = target - design @ coef
         scale = max(1.4826 * float(np.median(np.abs(residual))), 1e-9)
         k = 1.5 * scale
