@@ -26,6 +26,7 @@ from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, feature
                                            network_input, network_mask)
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
+from cusfm_ros.models.device_features import DeviceFeatures
 from cusfm_ros.models.nets.aliked import detect_keypoints_batch
 from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
 from cusfm_ros.models.nets.xfeat import detect_and_describe
@@ -203,6 +204,7 @@ class TorchLightGlueMatcher:
         self.device = _device(options.device)
         self.model = load_lightglue(weights).fuse_attention().to(self.device)
         self.steps = _TorchLayerSteps(self.model)
+        self.resident = DeviceFeatures(torch, self.device)
 
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
@@ -375,16 +377,7 @@ class TorchLightGlueMatcher:
         counts = np.array([(len(a), len(b)) for a, b in pairs])
         multiple = self.options.pad_multiple
         size = -(-counts.max(0) // multiple) * multiple
-        batch = [[np.zeros((len(pairs), n, d), np.float32) for n in size]
-                 for d in (2, self.descriptor_dim)]
-        masks = [np.zeros((len(pairs), n), bool) for n in size]
-        for b, pair in enumerate(pairs):
-            for side, features in enumerate(pair):
-                n = len(features)
-                batch[0][side][b, :n] = normalize_keypoints(features.keypoints_px,
-                                                            features.image_size)
-                batch[1][side][b, :n] = features.descriptors
-                masks[side][b, :n] = True
+        masks = [np.arange(n)[None] < counts[:, side, None] for side, n in enumerate(size)]
         cuda = self.device.type == "cuda"
         with torch.inference_mode():
             def tensor(array):
@@ -394,7 +387,9 @@ class TorchLightGlueMatcher:
 
             # a side every pair fills needs no mask (the flash kernel takes none)
             masks = [None if m.all() else tensor(m) for m in masks]
-            inputs = [tensor(a) for a in (*batch[0], *batch[1])]
+            sides = [self.resident.padded([pair[side] for pair in pairs], size[side])
+                     for side in (0, 1)]
+            inputs = [sides[0][0], sides[1][0], sides[0][1], sides[1][1]]
             with self._precision():
                 if self.options.depth_confidence > 0:
                     found = self._early_exit_pass(inputs, masks)

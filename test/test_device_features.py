@@ -1,0 +1,66 @@
+"""Images' matcher inputs kept on the device: uploaded once, padded batches, bounded."""
+
+import numpy as np
+import pytest
+
+from cusfm_ros.core.features.lightglue import normalize_keypoints
+from cusfm_ros.core.features.types import Features
+
+torch = pytest.importorskip("torch")
+
+
+def _features(rng, n, dim=8, size=(640, 480)):
+    return Features(rng.uniform(0, 400, (n, 2)).astype(np.float32),
+                    rng.uniform(size=n).astype(np.float32),
+                    rng.normal(size=(n, dim)).astype(np.float32), size)
+
+
+def test_padded_batches_equal_the_host_batch(rng):
+    from cusfm_ros.models.device_features import DeviceFeatures
+
+    resident = DeviceFeatures(torch, torch.device("cpu"))
+    images = [_features(rng, n) for n in (5, 3, 7)]
+    for size in (7, 12):  # the largest image's count, and rounded up past it
+        keypoints, descriptors = resident.padded(images, size)
+        assert keypoints.shape == (3, size, 2) and descriptors.shape == (3, size, 8)
+        for b, features in enumerate(images):
+            n = len(features)
+            expected = np.zeros((size, 2), np.float32)
+            expected[:n] = normalize_keypoints(features.keypoints_px, features.image_size)
+            np.testing.assert_array_equal(keypoints[b].numpy(), expected)
+            expected = np.zeros((size, 8), np.float32)
+            expected[:n] = features.descriptors
+            np.testing.assert_array_equal(descriptors[b].numpy(), expected)
+    assert len(resident) == 3  # each image prepared once
+
+
+def test_an_image_is_uploaded_once_and_the_oldest_dropped_past_the_bound(rng):
+    from cusfm_ros.models.device_features import DeviceFeatures
+
+    images = [_features(rng, 10) for _ in range(4)]
+    per_image = 4 * 10 * (2 + 8)
+    resident = DeviceFeatures(torch, torch.device("cpu"), max_bytes=3 * per_image)
+    first = resident.get(images[0])
+    assert resident.get(images[0])[1] is first[1]  # the same tensors: not uploaded again
+    for features in images[1:]:
+        resident.get(features)
+    assert len(resident) == 3
+    assert resident.get(images[0])[1] is not first[1]  # dropped as the oldest, then again
+    same = Features(images[1].keypoints_px, images[1].scores, images[1].descriptors + 1,
+                    images[1].image_size)  # equal arrays' object is not the key: identity is
+    np.testing.assert_array_equal(resident.get(same)[1].numpy(), same.descriptors)
+
+
+def test_an_entry_goes_with_its_features_object(rng):
+    import gc
+
+    from cusfm_ros.models.device_features import DeviceFeatures
+
+    resident = DeviceFeatures(torch, torch.device("cpu"))
+    kept, dropped = _features(rng, 10), _features(rng, 20)
+    resident.get(kept)
+    resident.get(dropped)
+    assert len(resident) == 2
+    del dropped
+    gc.collect()
+    assert len(resident) == 1 and resident._bytes == 4 * 10 * (2 + 8)
