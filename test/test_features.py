@@ -2,6 +2,7 @@
 reference; extractor/matcher behaviour; SIFT and k-NN; the model cache."""
 
 import json
+import time
 import subprocess
 import sys
 
@@ -615,6 +616,37 @@ def test_features_stage_batches_images_of_one_size(tmp_path, motorcycle):
             expected = SiftExtractor(SiftOptions(max_keypoints=100)).extract(image)
             np.testing.assert_array_equal(store.features(name).keypoints_px,
                                           expected.keypoints_px)
+
+
+def test_a_failed_write_behind_the_batches_stops_the_stage_with_its_error(tmp_path,
+                                                                         motorcycle):
+    """Batches are written on a thread of their own; a write that fails is the stage's error,
+    and no batch after it is extracted."""
+    from cusfm_ros.io.feature_store import FeatureStore
+    from cusfm_ros.pipeline.stages.features import extract_features
+
+    class Batched(SiftExtractor):
+        batch_size = 2
+        parallel_images = False
+        extracted: list = []
+
+        def extract_batch(self, images):
+            self.extracted.append(len(images))
+            time.sleep(0.2)  # the write of the batch before this one is done meanwhile
+            return [self.extract(image) for image in images]
+
+    class Full(FeatureStore):
+        def put_features(self, name, features):
+            if name == "2.png":
+                raise OSError(28, "No space left on device")
+            super().put_features(name, features)
+
+    images = [(f"{i}.png", motorcycle[0]) for i in range(10)]
+    with Full(tmp_path / "f.h5", {}) as store:
+        with pytest.raises(OSError, match="No space left"):
+            extract_features(images, Batched(SiftOptions(max_keypoints=50)), store, threads=1)
+        assert store.has_features("1.png") and not store.has_features("2.png")
+    assert sum(Batched.extracted) < 10
 
 
 def test_attention_without_cudnn_leaves_the_flags_as_they_were():

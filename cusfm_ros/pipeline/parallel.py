@@ -50,6 +50,12 @@ def _block_signals() -> None:
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
 
 
+def background_thread(name: str) -> ThreadPoolExecutor:
+    """One worker thread for work handed off in order (writes behind a GPU's next batch);
+    like the map's threads, it leaves Ctrl-C and SIGTERM to the main thread."""
+    return ThreadPoolExecutor(1, thread_name_prefix=name, initializer=_block_signals)
+
+
 def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], threads: int = 0
                 ) -> Iterator[tuple[Item, Result]]:
     """``(item, function(item))`` in the order of ``items``, computed on ``threads`` threads

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from cusfm_ros.core.features.types import Features
 from cusfm_ros.errors import CusfmError
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.pipeline.components import FeatureOptions, make_extractor
-from cusfm_ros.pipeline.parallel import ordered_map, thread_count
+from cusfm_ros.pipeline.parallel import background_thread, ordered_map, thread_count
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features
@@ -68,23 +69,41 @@ def extract_features(images: Sequence[tuple[str, str | Path | np.ndarray]], extr
         keypoints += len(features)
         progress.step()
 
-    def flush() -> None:
-        for (name, _), features in zip(batch, extractor.extract_batch([i for _, i in batch])):
-            put(name, features)
-        batch.clear()
+    # batches are written on a thread of their own while the next one runs on the device
+    # (the HDF5 writes took 0.9 s of a 300-frame run's 4.7 s stage, the GPU idle meanwhile)
+    writer = background_thread("cusfm-features") if batch_size > 1 else None
+    written: deque = deque()
 
-    with _one_opencv_thread_per_image(in_threads and thread_count(threads) > 1):
-        for (name, _), result in ordered_map(decode, todo, threads):
-            if batch_size == 1:
-                put(name, result if in_threads else extractor.extract(result))
-                continue
-            if batch and batch[0][1].shape != result.shape:  # a batch holds one image size
+    def put_all(named: list) -> None:
+        for name, features in named:
+            put(name, features)
+
+    def flush() -> None:
+        named = [(name, features) for (name, _), features in
+                 zip(batch, extractor.extract_batch([i for _, i in batch]))]
+        batch.clear()
+        while written and written[0].done():  # a failed write stops the stage here
+            written.popleft().result()
+        written.append(writer.submit(put_all, named))
+
+    try:
+        with _one_opencv_thread_per_image(in_threads and thread_count(threads) > 1):
+            for (name, _), result in ordered_map(decode, todo, threads):
+                if batch_size == 1:
+                    put(name, result if in_threads else extractor.extract(result))
+                    continue
+                if batch and batch[0][1].shape != result.shape:  # one image size a batch
+                    flush()
+                batch.append((name, result))
+                if len(batch) == batch_size:
+                    flush()
+            if batch:
                 flush()
-            batch.append((name, result))
-            if len(batch) == batch_size:
-                flush()
-        if batch:
-            flush()
+        while written:
+            written.popleft().result()
+    finally:
+        if writer is not None:
+            writer.shutdown(cancel_futures=True)
     return {"images": len(images), "extracted": len(todo), "keypoints_extracted": keypoints}
 
 
