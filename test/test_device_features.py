@@ -64,3 +64,18 @@ def test_an_entry_goes_with_its_features_object(rng):
     del dropped
     gc.collect()
     assert len(resident) == 1 and resident._bytes == 4 * 10 * (2 + 8)
+
+
+def test_images_of_one_call_come_in_one_block_and_stay_past_the_bound(rng):
+    from cusfm_ros.models.device_features import DeviceFeatures
+
+    images = [_features(rng, n) for n in (4, 6, 5)]
+    resident = DeviceFeatures(torch, torch.device("cpu"), max_bytes=1)  # below one image
+    keypoints, descriptors = resident.padded(images + images[:1], 6)
+    assert len(resident) == 3  # each once, none dropped while its batch is made
+    blocks = {resident.get(f)[1].untyped_storage().data_ptr() for f in images}
+    assert len(blocks) == 1  # one upload for the three
+    np.testing.assert_array_equal(descriptors[3].numpy(), descriptors[0].numpy())
+    later = _features(rng, 3)
+    resident.get(later)  # the next call drops the older entries
+    assert len(resident) == 1
