@@ -45,8 +45,9 @@ def extract_features(images: Sequence[tuple[str, str | Path | np.ndarray]], extr
     """Extract ``(name, image or image path)`` into ``store``; ``extractor`` is an object or a
     zero-argument factory (called only if there is work). Images are decoded on ``threads``
     CPU threads (0: every core), and extracted there too when the extractor runs on one core
-    per call (SIFT); the networks keep their own thread pools and run one image at a time.
-    Returns counts."""
+    per call (SIFT); the networks keep their own thread pools and run one image at a time,
+    or a batch of ``extractor.batch_size`` images, each batch written on a thread of its own
+    while the next is extracted. Returns counts."""
     todo = [(n, i) for n, i in images if not (skip_existing and store.has_features(n))]
     logger.info("features: %d images, %d to extract", len(images), len(todo))
     keypoints = 0
@@ -82,7 +83,8 @@ def extract_features(images: Sequence[tuple[str, str | Path | np.ndarray]], extr
         named = [(name, features) for (name, _), features in
                  zip(batch, extractor.extract_batch([i for _, i in batch]))]
         batch.clear()
-        while written and written[0].done():  # a failed write stops the stage here
+        # a failed write stops the stage here; at most two batches wait to be written
+        while written and (written[0].done() or len(written) >= 2):
             written.popleft().result()
         written.append(writer.submit(put_all, named))
 
