@@ -20,11 +20,42 @@ that says so.
 from __future__ import annotations
 
 import argparse
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import compare  # noqa: E402 - the bench folder is not a package
+
+
+class GpuBusy:
+    """The mean share of time a kernel ran on GPU 0 while a run goes (nvidia-smi's
+    ``utilization.gpu``, sampled every 100 ms): a run fed by a busy host leaves the GPU idle
+    (street 300 on an H100, 2026-12-06: 45-56 % while the networks ran, 0 % between).
+    ``percent`` is None for a CPU run or where there is no nvidia-smi."""
+
+    def __init__(self, device: str) -> None:
+        self.active = device == "cuda" and shutil.which("nvidia-smi") is not None
+        self.percent: float | None = None
+        self._sampler = None
+
+    def __enter__(self) -> GpuBusy:
+        if self.active:
+            self._sampler = subprocess.Popen(
+                ["nvidia-smi", "-i", "0", "--query-gpu=utilization.gpu",
+                 "--format=csv,noheader,nounits", "-lms", "100"],
+                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._sampler is None:
+            return
+        self._sampler.terminate()
+        out, _ = self._sampler.communicate(timeout=10)
+        samples = [float(line) for line in out.split()
+                   if line.replace(".", "", 1).isdigit()]
+        self.percent = sum(samples) / len(samples) if samples else None
 
 
 def outside_stages(row: dict) -> float | None:
@@ -44,8 +75,8 @@ def markdown(rows: list[dict], header: str) -> str:
              "its time outside the stages, such as the interpreter's and torch's start, CUDA's "
              "initialisation and the report page)", "",
              f"| {label}frames | device | " + " | ".join(columns) + " | outside | total | "
-             "peak RSS MB | GPU peak MB | ATE SE(3) m |",
-             "|---" * (len(columns) + 7 + bool(label)) + "|"]
+             "peak RSS MB | GPU peak MB | GPU busy % | ATE SE(3) m |",
+             "|---" * (len(columns) + 8 + bool(label)) + "|"]
     for r in rows:
         stages = [compare._cell(r["seconds_per_100_frames"].get(c), 1) for c in columns]
         total = r["failed"] or compare._cell(r["total_per_100_frames_s"], 1)
@@ -54,7 +85,7 @@ def markdown(rows: list[dict], header: str) -> str:
         lines.append(f"| {cell}{r['frames']} | {r['device']} | " + " | ".join(stages)
                      + f" | {compare._cell(outside_stages(r), 1)} | {total} | "
                      f"{r['peak_rss_mb']:.0f} | {compare._cell(r['gpu_peak_mb'], 0)} | "
-                     f"{compare._cell(ate, 4)} |")
+                     f"{compare._cell(r.get('gpu_busy_pct'), 0)} | {compare._cell(ate, 4)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -104,10 +135,11 @@ def main(argv: list[str] | None = None) -> int:
                 for code, root in codes:
                     name = f"{frames}_{device}" + ("" if len(codes) == 1 and args.repeat == 1
                                                    else f"_{code}_{index}")
-                    result = compare.run_system(system, spec_path, out / "runs" / name, run,
-                                                root)
+                    with GpuBusy(device) as busy:
+                        result = compare.run_system(system, spec_path, out / "runs" / name,
+                                                    run, root)
                     rows.append({**compare.row(result, spec), "device": device,
-                                 "code": code, "run": index})
+                                 "code": code, "run": index, "gpu_busy_pct": busy.percent})
                     compare.save(out, "gpu", "cusfm_gpu_bench/1", header, rows,
                                  markdown(rows, header))
     print(markdown(rows, header))

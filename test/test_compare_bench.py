@@ -4,6 +4,7 @@ peers' BAL adjusters (bench/ba_peers.py) reach gtsam's optimum on a synthetic pr
 
 import importlib.util
 import json
+import os
 import re
 import sys
 from pathlib import Path
@@ -78,6 +79,29 @@ def test_gpu_bench_runs_each_device_and_reports_the_stages(bench_out):
              if x.startswith("| 30 | cpu | ")]
     assert f" | {outside:.1f} | {row['total_per_100_frames_s']:.1f} | " in line
     assert gpu.outside_stages({**row, "failed": "exit 1: ..."}) is None
+
+
+def test_gpu_busy_is_the_mean_of_nvidia_smis_samples_over_a_run(tmp_path, monkeypatch):
+    """The GPU's busy share over a cuda run, from nvidia-smi's samples (a stand-in here that
+    prints three and waits to be stopped); none for a CPU run or without nvidia-smi."""
+    import time
+
+    import gpu
+
+    fake = tmp_path / "nvidia-smi"
+    fake.write_text("#!/bin/sh\nprintf '40\\n50\\n90\\n'\nexec sleep 30\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{tmp_path}:{os.environ['PATH']}")
+    with gpu.GpuBusy("cuda") as busy:
+        time.sleep(0.5)
+    assert busy.percent == pytest.approx(60.0)
+    with gpu.GpuBusy("cpu") as busy:
+        pass
+    assert busy.percent is None
+    monkeypatch.setenv("PATH", str(tmp_path / "none"))
+    with gpu.GpuBusy("cuda") as busy:
+        pass
+    assert busy.percent is None
 
 
 def test_gpu_bench_alternates_with_another_checkout(bench_out, tmp_path, capsys):
