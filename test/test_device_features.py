@@ -20,17 +20,21 @@ def test_padded_batches_equal_the_host_batch(rng):
 
     resident = DeviceFeatures(torch, torch.device("cpu"))
     images = [_features(rng, n) for n in (5, 3, 7)]
+    pairs = list(zip(images, images[::-1]))
     for size in (7, 12):  # the largest image's count, and rounded up past it
-        keypoints, descriptors = resident.padded(images, size)
-        assert keypoints.shape == (3, size, 2) and descriptors.shape == (3, size, 8)
-        for b, features in enumerate(images):
-            n = len(features)
-            expected = np.zeros((size, 2), np.float32)
-            expected[:n] = normalize_keypoints(features.keypoints_px, features.image_size)
-            np.testing.assert_array_equal(keypoints[b].numpy(), expected)
-            expected = np.zeros((size, 8), np.float32)
-            expected[:n] = features.descriptors
-            np.testing.assert_array_equal(descriptors[b].numpy(), expected)
+        padded = resident.padded_pairs(pairs, (size, size))
+        for side in (0, 1):
+            keypoints, descriptors = padded[side], padded[2 + side]
+            assert keypoints.shape == (3, size, 2) and descriptors.shape == (3, size, 8)
+            for b, pair in enumerate(pairs):
+                features = pair[side]
+                n = len(features)
+                expected = np.zeros((size, 2), np.float32)
+                expected[:n] = normalize_keypoints(features.keypoints_px, features.image_size)
+                np.testing.assert_array_equal(keypoints[b].numpy(), expected)
+                expected = np.zeros((size, 8), np.float32)
+                expected[:n] = features.descriptors
+                np.testing.assert_array_equal(descriptors[b].numpy(), expected)
     assert len(resident) == 3  # each image prepared once
 
 
@@ -71,11 +75,12 @@ def test_images_of_one_call_come_in_one_block_and_stay_past_the_bound(rng):
 
     images = [_features(rng, n) for n in (4, 6, 5)]
     resident = DeviceFeatures(torch, torch.device("cpu"), max_bytes=1)  # below one image
-    keypoints, descriptors = resident.padded(images + images[:1], 6)
+    _, _, descriptors0, descriptors1 = resident.padded_pairs(
+        [(images[0], images[1]), (images[2], images[0])], (6, 6))  # both sides at once
     assert len(resident) == 3  # each once, none dropped while its batch is made
     blocks = {resident.get(f)[1].untyped_storage().data_ptr() for f in images}
     assert len(blocks) == 1  # one upload for the three
-    np.testing.assert_array_equal(descriptors[3].numpy(), descriptors[0].numpy())
+    np.testing.assert_array_equal(descriptors1[1].numpy(), descriptors0[0].numpy())
     later = _features(rng, 3)
     resident.get(later)  # the next call drops the older entries
     assert len(resident) == 1

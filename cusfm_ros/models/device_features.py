@@ -35,12 +35,12 @@ class DeviceFeatures:
         return len(self._entries)
 
     def get(self, features: Features) -> tuple:
-        self.put_all([features])
+        self._put_all([features])
         with self._lock:
             entry = self._entries[id(features)]
             return entry[1], entry[2]
 
-    def put_all(self, images: list[Features]) -> None:
+    def _put_all(self, images: list[Features]) -> None:
         """Upload those of ``images`` not on the device yet, all in one copy: one pinned
         buffer per call. (Pinned per image, the loops stage ran 1.5x slower on an H100: a
         pinned allocation waits for the device, which was still busy with the pass before.)
@@ -93,18 +93,21 @@ class DeviceFeatures:
         # pinned, the copy does not wait for the passes still running on the device
         return host.pin_memory().to(self.device, non_blocking=True)
 
-    def padded(self, images: list[Features], size: int) -> tuple:
-        """Keypoints (B, size, 2) and descriptors (B, size, D) of ``images`` (each at most
-        ``size`` points), zeros after each image's own points, as the host batch had."""
-        pad_sequence = self.torch.nn.utils.rnn.pad_sequence
-        self.put_all(images)
+    def padded_pairs(self, pairs: list[tuple[Features, Features]], sizes: tuple[int, int]
+                     ) -> list:
+        """A pass's inputs, ``[keypoints0, keypoints1, descriptors0, descriptors1]``: side
+        ``s`` of every pair padded to ``sizes[s]`` points, keypoints (B, size, 2) and
+        descriptors (B, size, D), zeros after each image's own points, as the host batch
+        had. The images neither side has on the device yet go up in one block."""
+        self._put_all([features for pair in pairs for features in pair])
         with self._lock:
-            pairs = [self._entries[id(features)][1:3] for features in images]
-        batch = []
-        for tensors in zip(*pairs):
-            stacked = pad_sequence(list(tensors), batch_first=True)
-            if stacked.shape[1] < size:  # the largest image is below a rounded-up size
-                stacked = self.torch.nn.functional.pad(stacked,
-                                                       (0, 0, 0, size - stacked.shape[1]))
-            batch.append(stacked)
-        return batch[0], batch[1]
+            sides = [[self._entries[id(pair[side])][1:3] for pair in pairs] for side in (0, 1)]
+        return [self._padded([entry[part] for entry in sides[side]], sizes[side])
+                for part in (0, 1) for side in (0, 1)]
+
+    def _padded(self, tensors: list, size: int):
+        """``tensors`` (N_i, C) -> (B, size, C), zeros after each one's rows."""
+        stacked = self.torch.nn.utils.rnn.pad_sequence(tensors, batch_first=True)
+        if stacked.shape[1] < size:  # the largest image is below a rounded-up size
+            stacked = self.torch.nn.functional.pad(stacked, (0, 0, 0, size - stacked.shape[1]))
+        return stacked

@@ -387,10 +387,7 @@ class TorchLightGlueMatcher:
 
             # a side every pair fills needs no mask (the flash kernel takes none)
             masks = [None if m.all() else tensor(m) for m in masks]
-            self.resident.put_all([features for pair in pairs for features in pair])
-            sides = [self.resident.padded([pair[side] for pair in pairs], size[side])
-                     for side in (0, 1)]
-            inputs = [sides[0][0], sides[1][0], sides[0][1], sides[1][1]]
+            inputs = self.resident.padded_pairs(pairs, size)
             with self._precision():
                 if self.options.depth_confidence > 0:
                     found = self._early_exit_pass(inputs, masks)
