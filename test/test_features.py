@@ -712,6 +712,42 @@ def test_reduced_precision_lightglue_on_cuda_keeps_the_fp32_matches(motorcycle):
             assert len(full) > 300 and len(common) >= 0.97 * len(full), reduced
 
 
+@pytest.mark.gpu
+@pytest.mark.parametrize("half_precision", [False, True])
+def test_lightglue_passes_replayed_as_cuda_graphs_give_the_matches_of_uncaptured_ones(
+        motorcycle, half_precision):
+    """A shape's first pass runs as it is, its second is captured and replayed, later ones are
+    replayed with new inputs: the matches of each pair are those of the uncaptured pass and,
+    in fp32, those of the matcher without graphs (padded to other sizes)."""
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    from cusfm_ros.core.features.lightglue import LightGlueOptions
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor, TorchLightGlueMatcher
+
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda"))
+    f0, f1 = (extractor.extract(image) for image in motorcycle)
+
+    def first(f, n):
+        return Features(f.keypoints_px[:n], f.scores[:n], f.descriptors[:n], f.image_size)
+
+    # two passes of 2 pairs, both padded to 2048 x 2048: one shape, other inputs
+    pairs = [(first(f0, 2000), first(f1, 1990)), (first(f0, 1500), f1),
+             (f1, first(f0, 1985)), (first(f1, 1999), first(f0, 1600))]
+    options = dict(device="cuda", batch_pairs=2, half_precision=half_precision)
+    graphed = TorchLightGlueMatcher(LightGlueOptions(**options))
+    assert graphed.graphed is not None
+    runs = [graphed.match_many(pairs) for _ in range(3)]
+    assert len(graphed.graphed) == 1 and graphed.graphed.replays == 5  # 1 eager pass
+    plain = TorchLightGlueMatcher(LightGlueOptions(**options, cuda_graphs=False))
+    assert plain.graphed is None
+    reference = plain.match_many(pairs)
+    for index, matches in enumerate(runs[0]):
+        assert len(matches) > 300
+        for other in [runs[1][index], runs[2][index]] + [reference[index]] * (not half_precision):
+            np.testing.assert_array_equal(other.indices, matches.indices)
+            np.testing.assert_allclose(other.confidences, matches.confidences, atol=1e-4)
+
+
 def test_half_precision_lightglue_keeps_its_positional_encoding_and_assignment_in_fp32():
     """Under autocast only the transformer layers run in half precision: the positional
     encoding and the match assignment give exactly their fp32 values (in fp16 the encoding's

@@ -27,6 +27,7 @@ from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, feature
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
 from cusfm_ros.models.device_features import DeviceFeatures
+from cusfm_ros.models.graphed_passes import GraphedPasses, graph_side
 from cusfm_ros.models.nets.aliked import detect_keypoints_batch
 from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
 from cusfm_ros.models.nets.xfeat import detect_and_describe
@@ -205,6 +206,14 @@ class TorchLightGlueMatcher:
         self.model = load_lightglue(weights).fuse_attention().to(self.device)
         self.steps = _TorchLayerSteps(self.model)
         self.resident = DeviceFeatures(torch, self.device)
+        self.graphed = None
+        if self.device.type == "cuda" and options.cuda_graphs:
+            self.graphed = GraphedPasses(torch, self._network_pass,
+                                         lambda: self._precision(weight_cache=False))
+
+    def _network_pass(self, *inputs) -> tuple:
+        """The network and the mutual-best filter on a padded batch (``_launch``)."""
+        return mutual_best(self.model(*inputs), self.options.filter_threshold)
 
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
@@ -237,14 +246,15 @@ class TorchLightGlueMatcher:
                 scores = self.model(*inputs)
         return filter_matches(scores[0].float().cpu().numpy(), o.filter_threshold)
 
-    def _precision(self):
+    def _precision(self, weight_cache: bool = True):
         """On a GPU: TF32 matrix products when ``tf32`` asks for them, fp16 autocast when
         ``half_precision`` does, with cuDNN's attention kernel left out. In fp16 the loops
         stage ran 3x slower than in fp32 (H200, 2026-12-05) although a fixed-size batch ran
         3.8x faster: the stages pad each batch to its own sizes, and cuDNN builds an execution
         plan for every new shape (55-400 ms each, as its users report);
         ``bench/gpu_features.py`` times both choices over changing sizes. fp32 never reaches
-        cuDNN's kernel (it takes fp16/bf16 only)."""
+        cuDNN's kernel (it takes fp16/bf16 only). ``weight_cache`` False: autocast casts the
+        weights at each use instead of once per block (a CUDA graph's capture needs it)."""
         torch = self.torch
         stack = contextlib.ExitStack()
         o = self.options
@@ -256,7 +266,8 @@ class TorchLightGlueMatcher:
             stack.enter_context(float32_matmul_precision(torch, "high"))
         if o.half_precision:
             stack.enter_context(sdpa_kernel_without_cudnn())
-            stack.enter_context(torch.autocast("cuda", torch.float16))
+            stack.enter_context(torch.autocast("cuda", torch.float16,
+                                               cache_enabled=weight_cache))
         return stack
 
     @property
@@ -369,14 +380,18 @@ class TorchLightGlueMatcher:
 
     def _launch(self, pairs: list[tuple[Features, Features]]) -> tuple:
         """One pass over pairs padded to the largest side of each image (rounded up to
-        ``pad_multiple``), masks marking the real points (``LightGlueNet.forward``; none on a
+        ``pad_multiple``, and to ``graph_side`` where passes are replayed as CUDA graphs:
+        ``GraphedPasses``), masks marking the real points (``LightGlueNet.forward``; none on a
         side no pair pads); the mutual-best filter runs on the device and only each point's
         partner, confidence and validity come back, copied to pinned host memory behind the
         pass (an event marks their arrival). ``_collect`` turns it into matches."""
         torch = self.torch
         counts = np.array([(len(a), len(b)) for a, b in pairs])
         multiple = self.options.pad_multiple
-        size = -(-counts.max(0) // multiple) * multiple
+        if self.graphed is not None:  # few sizes, so that each is captured once
+            size = np.array([graph_side(int(n), multiple) for n in counts.max(0)])
+        else:
+            size = -(-counts.max(0) // multiple) * multiple
         masks = [np.arange(n)[None] < counts[:, side, None] for side, n in enumerate(size)]
         cuda = self.device.type == "cuda"
         with torch.inference_mode():
@@ -388,12 +403,14 @@ class TorchLightGlueMatcher:
             # a side every pair fills needs no mask (the flash kernel takes none)
             masks = [None if m.all() else tensor(m) for m in masks]
             inputs = self.resident.padded_pairs(pairs, size)
-            with self._precision():
-                if self.options.depth_confidence > 0:
+            if self.options.depth_confidence > 0:
+                with self._precision():
                     found = self._early_exit_pass(inputs, masks)
-                else:
-                    found = mutual_best(self.model(*inputs, *masks),
-                                        self.options.filter_threshold)
+            elif self.graphed is not None:
+                found = self.graphed(*inputs, *masks)
+            else:
+                with self._precision():
+                    found = self._network_pass(*inputs, *masks)
             if not cuda:
                 return counts, found, None
             arrived = torch.cuda.Event()

@@ -45,6 +45,11 @@ class LightGlueOptions:
     """The torch backend pads each batch's sides up to a multiple of this many points
     (masked, so the matches are the same): the network then sees a few shapes again and
     again instead of a new one per batch. 1: to the batch's largest side only."""
+    cuda_graphs: bool = True
+    """The torch backend on a GPU replays each pass shape it has run before as a CUDA graph
+    (all of a pass's ~400 kernels in one launch, where Python launched them one by one) and
+    pads sides to a few sizes for it (``graphed_passes.graph_side``: at most 1/8 more points,
+    masked); elsewhere, and with ``depth_confidence``, it has no effect."""
     device: str = "auto"
     threads: int = 0
 

@@ -1,0 +1,123 @@
+"""A network pass replayed as a CUDA graph, one graph per input shape.
+
+A LightGlue pass is ~400 kernels; launched one by one from Python they cost the thread that
+feeds the GPU a few milliseconds per pass, more while the verification threads hold the GIL
+(2026-12-06, H100: the GPU busy 45-56 % of the networks' time, the main thread 3.2 s of a
+300-frame run in LightGlue's launches). A captured graph launches them all in one call.
+
+torch's ``make_graphed_callables`` is for training (it builds backward graphs and wants fixed
+inputs given up front); ``torch.compile(mode="reduce-overhead")`` compiles for tens of seconds
+per run. This module does the one thing needed: a graph per input signature, captured on the
+signature's second pass (most shapes of a run recur; one seen once is not worth a capture),
+all in one memory pool, replayed under a lock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections import Counter
+from collections.abc import Callable
+
+logger = logging.getLogger(__name__)
+
+
+def graph_side(points: int, multiple: int = 1) -> int:
+    """``points`` rounded up to a size of which a run has few: a multiple of a sixteenth of
+    the next power of two (64 at least), then of ``multiple``. Above 512 points at most 1/8
+    more, mostly under 1/16 (1100 -> 1152, 1200 -> 1280, 700 -> 704), below fewer than 64
+    more. A pass takes the largest of its 16 images a side: on the street (ALIKED, 712-1197
+    keypoints an image) mostly 1000-1197, three sizes."""
+    if points <= 0:
+        return multiple
+    step = max(64, (1 << (points - 1).bit_length()) // 16)
+    size = -(-points // step) * step
+    return -(-size // multiple) * multiple
+
+
+class GraphedPasses:
+    """``run(*inputs)`` (tensors on one CUDA device, or None) returning a tuple of tensors,
+    replayed from a CUDA graph per signature (each input's shape and dtype, None where it is
+    None) from that signature's second call on. ``context()`` is entered around every eager
+    run and capture (autocast and the matmul precision: a replay keeps what was captured);
+    it must not use autocast's weight cache, whose casts would be freed under the graph.
+
+    The result of a replay is a copy: the graph's own output tensors are overwritten by its
+    next replay, perhaps from another thread. Nothing here is valid on a CPU device."""
+
+    def __init__(self, torch, run: Callable, context: Callable = contextlib.nullcontext,
+                 max_graphs: int = 64) -> None:
+        self.torch, self.run, self.context, self.max_graphs = torch, run, context, max_graphs
+        self._graphs: dict[tuple, tuple] = {}
+        self._seen: Counter = Counter()
+        self._pool = None
+        self._stream = None
+        self._lock = threading.Lock()
+        self.enabled = True
+        self.replays = 0
+
+    def __len__(self) -> int:
+        return len(self._graphs)
+
+    def __call__(self, *inputs):
+        key = tuple(None if t is None else (tuple(t.shape), t.dtype) for t in inputs)
+        with self._lock:
+            graph = self._graphs.get(key)
+            if graph is None and self._worth_capturing(key):
+                graph = self._capture(key, inputs)
+                if graph is not None:
+                    # the inputs were captured in place: no copy to make this time
+                    graph[0].replay()
+                    self.replays += 1
+                    return self._results(graph[2])
+            if graph is None:
+                with self.context():
+                    return tuple(self.run(*inputs))
+            cuda_graph, static_inputs, static_outputs = graph
+            for static, tensor in zip(static_inputs, inputs):
+                if static is not None:
+                    static.copy_(tensor)
+            cuda_graph.replay()
+            self.replays += 1
+            return self._results(static_outputs)
+
+    def _results(self, outputs: tuple) -> tuple:
+        return tuple(t.clone() for t in outputs)
+
+    def _worth_capturing(self, key: tuple) -> bool:
+        self._seen[key] += 1
+        return self.enabled and self._seen[key] >= 2 and len(self._graphs) < self.max_graphs
+
+    def _capture(self, key: tuple, inputs: tuple):
+        """The graph of ``run`` on ``inputs``, which become its static inputs; None (and no
+        more captures) where the capture fails, the pass then runs as it is."""
+        torch = self.torch
+        try:
+            if self._stream is None:
+                # the first capture's stream is every capture's: its lazily made state
+                # (cuBLAS's workspace) is made by one eager pass on it, as torch requires
+                self._stream = torch.cuda.Stream()
+                self._stream.wait_stream(torch.cuda.current_stream())
+                with torch.cuda.stream(self._stream), self.context():
+                    self.run(*inputs)
+                torch.cuda.current_stream().wait_stream(self._stream)
+                self._pool = torch.cuda.graph_pool_handle()
+            # capture_begin/end, not ``torch.cuda.graph``: that one synchronizes the device
+            # and empties the device's and the pinned host memory caches at every capture
+            graph = torch.cuda.CUDAGraph()
+            self._stream.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(self._stream), self.context():
+                graph.capture_begin(pool=self._pool, capture_error_mode="thread_local")
+                try:
+                    outputs = tuple(self.run(*inputs))
+                finally:
+                    graph.capture_end()
+            torch.cuda.current_stream().wait_stream(self._stream)
+        except Exception as error:  # noqa: BLE001 - any capture failure: run eagerly
+            self.enabled = False
+            logger.warning("CUDA graph capture failed (%s: %s); the passes run uncaptured",
+                           type(error).__name__, error)
+            return None
+        self._graphs[key] = (graph, inputs, outputs)
+        return self._graphs[key]

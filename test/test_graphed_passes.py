@@ -1,0 +1,167 @@
+"""GraphedPasses: a pass replayed as a CUDA graph per input shape. On CPU the bookkeeping is
+checked against a stand-in for torch.cuda whose graphs behave as CUDA's do (a replay reruns
+the captured work on the captured input tensors and overwrites the captured outputs); the
+real thing is checked on a GPU (marked ``gpu``)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import types
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from cusfm_ros.models.graphed_passes import GraphedPasses, graph_side  # noqa: E402
+
+
+def test_graph_side_rounds_up_to_few_sizes_and_little_more():
+    assert [graph_side(n) for n in (1, 64, 65, 700, 1024, 1025, 1100, 1197, 2048, 3000)] == \
+        [64, 64, 128, 704, 1024, 1152, 1152, 1280, 2048, 3072]
+    assert graph_side(1100, multiple=256) == 1280 and graph_side(0, multiple=8) == 8
+    sizes = np.arange(1, 9000)
+    padded = np.array([graph_side(int(n)) for n in sizes])
+    assert (padded >= sizes).all() and (padded - sizes < 64)[sizes <= 512].all()
+    assert (padded <= sizes * 1.125)[sizes > 512].all()
+    # the largest side of 16 street pairs (ALIKED: 712-1197 keypoints an image, the largest
+    # of 16 mostly above 1000): three sizes
+    assert {graph_side(n) for n in range(1000, 1198)} == {1024, 1152, 1280}
+
+
+class _FakeCuda:
+    """torch.cuda as GraphedPasses uses it; a graph records the ``run`` calls made while it
+    captures and replays them as CUDA would: into the captured outputs, from the captured
+    inputs."""
+
+    def __init__(self) -> None:
+        self.capturing = None
+        self.fail_capture = False
+
+    def Stream(self):  # noqa: N802 - torch's name
+        return types.SimpleNamespace(wait_stream=lambda other: None)
+
+    def current_stream(self):
+        return self.Stream()
+
+    def stream(self, _):
+        return contextlib.nullcontext()
+
+    def graph_pool_handle(self):
+        return object()
+
+    def CUDAGraph(self):  # noqa: N802 - torch's name
+        cuda = self
+
+        class Graph:
+            work = []
+
+            def capture_begin(self, pool=None, capture_error_mode="global"):
+                cuda.capturing = self
+                self.work = []
+
+            def capture_end(self):
+                cuda.capturing = None
+
+            def replay(self):
+                for run, inputs, outputs in self.work:
+                    for out, value in zip(outputs, run(*inputs)):
+                        out.copy_(value)
+        return Graph()
+
+    def recorded(self, run):
+        """``run`` as a captured function: during a capture its call is recorded (and, as
+        on a GPU, nothing is computed yet: the outputs hold garbage until a replay)."""
+        def wrapper(*inputs):
+            if self.capturing is None:
+                return run(*inputs)
+            if self.fail_capture:
+                raise RuntimeError("operation not permitted when stream is capturing")
+            outputs = tuple(torch.full_like(t, -7.0) for t in run(*inputs))
+            self.capturing.work.append((run, inputs, outputs))
+            return outputs
+        return wrapper
+
+
+def _passes(**kwargs):
+    cuda = _FakeCuda()
+
+    def run(a, b, mask):
+        out = a * 2 + b.sum()
+        return (out if mask is None else out * mask, a.sum(0))
+    passes = GraphedPasses(types.SimpleNamespace(cuda=cuda), cuda.recorded(run), **kwargs)
+    return passes, cuda
+
+
+def _inputs(rng, rows, mask=False):
+    a, b = torch.from_numpy(rng.normal(size=(rows, 3))), torch.from_numpy(rng.normal(size=4))
+    return a, b, (torch.from_numpy(rng.random((rows, 3)) > 0.5) if mask else None)
+
+
+def _expected(a, b, mask):
+    out = a * 2 + b.sum()
+    return (out if mask is None else out * mask, a.sum(0))
+
+
+def test_a_shape_is_captured_on_its_second_pass_and_replayed_with_new_inputs_after():
+    rng = np.random.default_rng(0)
+    passes, _ = _passes()
+    results = []
+    for rows, mask in [(5, False), (5, False), (5, False), (6, False), (5, True), (5, False)]:
+        inputs = _inputs(rng, rows, mask)
+        results.append((passes(*inputs), _expected(*inputs)))
+    # 5 rows: eager, captured and replayed, replayed twice; 6 rows and the mask: eager
+    assert len(passes) == 1 and passes.replays == 3
+    for ours, theirs in results:
+        for got, want in zip(ours, theirs):
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
+    # a result is a copy: the next replay of the same graph does not change it
+    kept = [t.clone() for t in results[1][0]]
+    passes(*_inputs(rng, 5))
+    for got, want in zip(results[1][0], kept):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+
+
+def test_no_more_graphs_than_the_bound_and_a_failed_capture_runs_as_it_is(caplog):
+    rng = np.random.default_rng(1)
+    passes, _ = _passes(max_graphs=2)
+    for rows in (3, 3, 4, 4, 5, 5, 5):
+        inputs = _inputs(rng, rows)
+        for got, want in zip(passes(*inputs), _expected(*inputs)):
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
+    assert len(passes) == 2 and passes.replays == 2  # 5 rows: past the bound, eager
+
+    passes, cuda = _passes()
+    cuda.fail_capture = True
+    with caplog.at_level(logging.WARNING):
+        for _ in range(3):
+            inputs = _inputs(rng, 3)
+            for got, want in zip(passes(*inputs), _expected(*inputs)):
+                torch.testing.assert_close(got, want, rtol=0, atol=0)
+    assert len(passes) == 0 and not passes.enabled
+    assert [r.getMessage() for r in caplog.records if "CUDA graph" in r.getMessage()] == [
+        "CUDA graph capture failed (RuntimeError: operation not permitted when stream is "
+        "capturing); the passes run uncaptured"]
+
+
+@pytest.mark.gpu
+def test_cuda_graph_replays_equal_eager_passes_on_a_gpu():
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    linear = torch.nn.Linear(64, 32).cuda()
+
+    def run(x, mask):
+        with torch.autocast("cuda", torch.float16, cache_enabled=False):
+            y = torch.softmax(linear(x), -1)
+        return (y.float() * mask[..., None], y.argmax(-1))
+
+    passes = GraphedPasses(torch, run)
+    generator = torch.Generator("cuda").manual_seed(0)
+    with torch.inference_mode():
+        for step in range(6):
+            x = torch.randn((8, 100 + 28 * (step == 4), 64), device="cuda", generator=generator)
+            mask = torch.rand(x.shape[:2], device="cuda", generator=generator) > 0.3
+            for got, want in zip(passes(x, mask), run(x, mask)):
+                torch.testing.assert_close(got, want, rtol=0, atol=0)
+    assert len(passes) == 1 and passes.replays == 4
