@@ -44,11 +44,15 @@ class GraphedPasses:
     it must not use autocast's weight cache, whose casts would be freed under the graph.
 
     The result of a replay is a copy: the graph's own output tensors are overwritten by its
-    next replay, perhaps from another thread. Nothing here is valid on a CPU device."""
+    next replay, perhaps from another thread. ``copy_outputs`` False returns them as they
+    are, for one caller thread that queues all its work on them on the stream before its
+    next call (stream order keeps them intact until then; ALIKED's feature maps are ~1 GB a
+    batch). Nothing here is valid on a CPU device."""
 
     def __init__(self, torch, run: Callable, context: Callable = contextlib.nullcontext,
-                 max_graphs: int = 64) -> None:
+                 max_graphs: int = 64, copy_outputs: bool = True) -> None:
         self.torch, self.run, self.context, self.max_graphs = torch, run, context, max_graphs
+        self.copy_outputs = copy_outputs
         self._graphs: dict[tuple, tuple] = {}
         self._seen: Counter = Counter()
         self._pool = None
@@ -83,7 +87,7 @@ class GraphedPasses:
             return self._results(static_outputs)
 
     def _results(self, outputs: tuple) -> tuple:
-        return tuple(t.clone() for t in outputs)
+        return tuple(t.clone() for t in outputs) if self.copy_outputs else outputs
 
     def _worth_capturing(self, key: tuple) -> bool:
         self._seen[key] += 1

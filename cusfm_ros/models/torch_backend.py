@@ -78,6 +78,13 @@ class TorchAlikedExtractor:
         self.device = _device(options.device)
         self.model = load_aliked().to(self.device)
         self.batch_size = options.batch_size if self.device.type == "cuda" else 1
+        self.dense = self.model.dense
+        if self.device.type == "cuda" and options.cuda_graphs:
+            # its outputs are used by this thread's next kernels only: no copy of them
+            self.dense = GraphedPasses(torch, self.model.dense, copy_outputs=False)
+        # one batch at a time from here to its copy back: a replay overwrites the graph's
+        # outputs, which the batch before may not have queued all its kernels on yet
+        self._lock = threading.Lock()
 
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
@@ -115,8 +122,8 @@ class TorchAlikedExtractor:
                     raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image "
                                        f"is {(h, w)}")
         o = self.options
-        with torch.inference_mode():
-            scores, feature_map = self.model.dense(
+        with torch.inference_mode(), self._lock:
+            scores, feature_map = self.dense(
                 torch.stack([self._network_input(image) for image in images]))
             allowed = None if masks is None else torch.from_numpy(
                 np.stack([np.asarray(mask) > 0 for mask in masks])).to(self.device)

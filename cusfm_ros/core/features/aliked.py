@@ -32,6 +32,9 @@ class AlikedOptions:
     batch_size: int = 4
     """Images per call of the network on a GPU (torch backend; one at a time on a CPU).
     About 0.6 GB of GPU memory per 1241x376 image."""
+    cuda_graphs: bool = True
+    """The torch backend on a GPU replays the dense network as a CUDA graph for a batch shape
+    it has run before (one launch instead of ~100 from Python); elsewhere no effect."""
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
