@@ -123,6 +123,17 @@ def test_a_shape_is_captured_on_its_second_pass_and_replayed_with_new_inputs_aft
         torch.testing.assert_close(got, want, rtol=0, atol=0)
 
 
+def test_without_copies_a_replay_gives_the_graphs_own_outputs_which_the_next_replay_reuses():
+    rng = np.random.default_rng(2)
+    passes, _ = _passes(copy_outputs=False)
+    first, second, third = (passes(*_inputs(rng, 4)) for _ in range(3))
+    assert first[0] is not second[0] and second[0] is third[0]  # eager, then the graph's
+    inputs = _inputs(rng, 4)
+    fourth = passes(*inputs)
+    torch.testing.assert_close(third[0], _expected(*inputs)[0], rtol=0, atol=0)
+    assert fourth[0] is third[0]
+
+
 def test_no_more_graphs_than_the_bound_and_a_failed_capture_runs_as_it_is(caplog):
     rng = np.random.default_rng(1)
     passes, _ = _passes(max_graphs=2)
