@@ -32,18 +32,21 @@ import compare  # noqa: E402 - the bench folder is not a package
 class GpuBusy:
     """The mean share of time a kernel ran on GPU 0 while a run goes (nvidia-smi's
     ``utilization.gpu``, sampled every 100 ms): a run fed by a busy host leaves the GPU idle
-    (street 300 on an H100, 2026-12-06: 45-56 % while the networks ran, 0 % between).
-    ``percent`` is None for a CPU run or where there is no nvidia-smi."""
+    (street 300 on an H100, 2026-12-06: 45-56 % while the networks ran, 0 % between), and
+    the most GPU memory in use (``memory.used``: the CUDA context and torch's cached blocks
+    and CUDA graph pools too, which torch's own peak, of its live tensors, leaves out).
+    ``percent`` and ``used_mb`` are None for a CPU run or where there is no nvidia-smi."""
 
     def __init__(self, device: str) -> None:
         self.active = device == "cuda" and shutil.which("nvidia-smi") is not None
         self.percent: float | None = None
+        self.used_mb: float | None = None
         self._sampler = None
 
     def __enter__(self) -> GpuBusy:
         if self.active:
             self._sampler = subprocess.Popen(
-                ["nvidia-smi", "-i", "0", "--query-gpu=utilization.gpu",
+                ["nvidia-smi", "-i", "0", "--query-gpu=utilization.gpu,memory.used",
                  "--format=csv,noheader,nounits", "-lms", "100"],
                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         return self
@@ -53,9 +56,14 @@ class GpuBusy:
             return
         self._sampler.terminate()
         out, _ = self._sampler.communicate(timeout=10)
-        samples = [float(line) for line in out.split()
-                   if line.replace(".", "", 1).isdigit()]
-        self.percent = sum(samples) / len(samples) if samples else None
+        samples = []
+        for line in out.splitlines():
+            fields = [field.strip() for field in line.split(",")]
+            if len(fields) == 2 and all(f.replace(".", "", 1).isdigit() for f in fields):
+                samples.append((float(fields[0]), float(fields[1])))
+        if samples:
+            self.percent = sum(busy for busy, _ in samples) / len(samples)
+            self.used_mb = max(used for _, used in samples)
 
 
 def outside_stages(row: dict) -> float | None:
@@ -75,8 +83,8 @@ def markdown(rows: list[dict], header: str) -> str:
              "its time outside the stages, such as the interpreter's and torch's start, CUDA's "
              "initialisation and the report page)", "",
              f"| {label}frames | device | " + " | ".join(columns) + " | outside | total | "
-             "peak RSS MB | GPU peak MB | GPU busy % | ATE SE(3) m |",
-             "|---" * (len(columns) + 8 + bool(label)) + "|"]
+             "peak RSS MB | GPU peak MB | GPU used MB | GPU busy % | ATE SE(3) m |",
+             "|---" * (len(columns) + 9 + bool(label)) + "|"]
     for r in rows:
         stages = [compare._cell(r["seconds_per_100_frames"].get(c), 1) for c in columns]
         total = r["failed"] or compare._cell(r["total_per_100_frames_s"], 1)
@@ -85,6 +93,7 @@ def markdown(rows: list[dict], header: str) -> str:
         lines.append(f"| {cell}{r['frames']} | {r['device']} | " + " | ".join(stages)
                      + f" | {compare._cell(outside_stages(r), 1)} | {total} | "
                      f"{r['peak_rss_mb']:.0f} | {compare._cell(r['gpu_peak_mb'], 0)} | "
+                     f"{compare._cell(r.get('gpu_used_mb'), 0)} | "
                      f"{compare._cell(r.get('gpu_busy_pct'), 0)} | {compare._cell(ate, 4)} |")
     return "\n".join(lines) + "\n"
 
@@ -139,7 +148,8 @@ def main(argv: list[str] | None = None) -> int:
                         result = compare.run_system(system, spec_path, out / "runs" / name,
                                                     run, root)
                     rows.append({**compare.row(result, spec), "device": device,
-                                 "code": code, "run": index, "gpu_busy_pct": busy.percent})
+                                 "code": code, "run": index, "gpu_busy_pct": busy.percent,
+                                 "gpu_used_mb": busy.used_mb})
                     compare.save(out, "gpu", "cusfm_gpu_bench/1", header, rows,
                                  markdown(rows, header))
     print(markdown(rows, header))

@@ -82,22 +82,23 @@ def test_gpu_bench_runs_each_device_and_reports_the_stages(bench_out):
 
 
 def test_gpu_busy_is_the_mean_of_nvidia_smis_samples_over_a_run(tmp_path, monkeypatch):
-    """The GPU's busy share over a cuda run, from nvidia-smi's samples (a stand-in here that
-    prints three and waits to be stopped); none for a CPU run or without nvidia-smi."""
+    """The GPU's busy share and most memory in use over a cuda run, from nvidia-smi's samples
+    (a stand-in here that prints three and waits to be stopped); none for a CPU run or
+    without nvidia-smi."""
     import time
 
     import gpu
 
     fake = tmp_path / "nvidia-smi"
-    fake.write_text("#!/bin/sh\nprintf '40\\n50\\n90\\n'\nexec sleep 30\n")
+    fake.write_text("#!/bin/sh\nprintf '40, 2100\\n50, 2900\\n90, 2500\\n'\nexec sleep 30\n")
     fake.chmod(0o755)
     monkeypatch.setenv("PATH", f"{tmp_path}:{os.environ['PATH']}")
     with gpu.GpuBusy("cuda") as busy:
         time.sleep(0.5)
-    assert busy.percent == pytest.approx(60.0)
+    assert busy.percent == pytest.approx(60.0) and busy.used_mb == 2900
     with gpu.GpuBusy("cpu") as busy:
         pass
-    assert busy.percent is None
+    assert busy.percent is None and busy.used_mb is None
     monkeypatch.setenv("PATH", str(tmp_path / "none"))
     with gpu.GpuBusy("cuda") as busy:
         pass
