@@ -4,6 +4,7 @@ results, errors and stops come back as if the stage had run in this process."""
 from __future__ import annotations
 
 import filecmp
+import hashlib
 import json
 import os
 import signal
@@ -75,6 +76,46 @@ def test_an_error_beside_stops_the_child_at_once(may_fork, tmp_path):
     assert not marker.exists()
 
 
+class _ImagesStage:
+    """A first stage that writes three files into the keyframes folder."""
+    name, outputs, optional_outputs = "images", ("keyframes_dir",), ()
+
+    def run(self, context):
+        folder = context.run.keyframes_dir
+        folder.mkdir(parents=True)
+        for index in range(3):
+            (folder / f"{index}.bmp").write_bytes(bytes([index]) * (1000 + index))
+        return {"images": 3}
+
+
+def test_a_forked_stage_hashes_its_outputs_there_and_this_process_learns_them(
+        may_fork, monkeypatch, tmp_path):
+    from cusfm_ros.io import digest
+    from cusfm_ros.io.digest import DigestCache
+    from cusfm_ros.io.run_dir import RunDir
+    from cusfm_ros.pipeline import runner
+    from cusfm_ros.pipeline.stage import StageContext
+
+    hashed_here = []
+    real = digest.file_digest
+    monkeypatch.setattr(digest, "file_digest",
+                        lambda path: hashed_here.append(path) or real(path))
+    run = RunDir(tmp_path)
+    digests = DigestCache(tmp_path / "digests.json", tmp_path)
+    (counts, seconds, known), _ = forked.run_forked_beside(
+        lambda: runner._run_and_digest(_ImagesStage(), StageContext(run, None), digests),
+        lambda: None)
+    assert counts == {"images": 3} and seconds >= 0 and hashed_here == []  # on the child
+    digests.learn(known)
+    folder = digests.digest(run.keyframes_dir)
+    assert hashed_here == []  # every file's digest known here
+    assert folder == DigestCache(tmp_path / "other.json", tmp_path).digest(run.keyframes_dir)
+    assert len(hashed_here) == 3  # the fresh cache hashed them
+    digests.save()
+    assert set(json.loads((tmp_path / "digests.json").read_text())) == {
+        f"keyframes/{index}.bmp" for index in range(3)}
+
+
 def test_where_a_fork_is_not_safe_both_run_here(monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", sys.modules.get("torch", object()))
     assert not forked.can_fork_beside()
@@ -110,7 +151,16 @@ def test_the_keyframes_stage_beside_torchs_import_writes_the_same_keyframes(smal
                for run in (beside, alone)]
     assert records[0]["counts"] == records[1]["counts"]
     assert records[0]["status"] == "complete" and records[0]["seconds"] > 0
+    assert records[0]["outputs"] == records[1]["outputs"]
     assert (beside / "COMPLETE").is_file()
+    # the keyframe images were hashed on the child; this process took its digests
+    known = json.loads((beside / "stages" / "digests.json").read_text())
+    images = sorted((beside / "keyframes").rglob("*.bmp"))
+    assert images
+    for image in images:
+        entry = known[str(image.relative_to(beside))]
+        assert entry["sha256"] == hashlib.sha256(image.read_bytes()).hexdigest()
+        assert entry["size"] == image.stat().st_size
 
 
 def test_ctrl_c_while_torch_imports_beside_the_keyframes_exits_130_in_one_line(

@@ -70,6 +70,19 @@ class DigestCache:
             digest.update(value.encode() + b"\n")
         return digest.hexdigest()
 
+    @property
+    def entries(self) -> dict[str, dict]:
+        """Every file's known digest (relative path -> size, mtime_ns, sha256): what another
+        process's cache of the same run directory can ``learn``."""
+        return dict(self._entries)
+
+    def learn(self, entries: dict[str, dict]) -> None:
+        """Take the digests another process's cache of this run directory computed (a forked
+        stage's outputs); a file changed since is hashed again, as ever, by size and mtime."""
+        if entries != self._entries:
+            self._entries.update(entries)
+            self._dirty = True
+
     def save(self) -> None:
         if self._dirty:
             with atomic_write(self.cache_file) as handle:
