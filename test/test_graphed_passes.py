@@ -38,6 +38,7 @@ class _FakeCuda:
     def __init__(self) -> None:
         self.capturing = None
         self.fail_capture = False
+        self.emptied = 0
 
     def Stream(self):  # noqa: N802 - torch's name
         return types.SimpleNamespace(wait_stream=lambda other: None)
@@ -50,6 +51,9 @@ class _FakeCuda:
 
     def graph_pool_handle(self):
         return object()
+
+    def empty_cache(self):
+        self.emptied += 1
 
     def CUDAGraph(self):  # noqa: N802 - torch's name
         cuda = self
@@ -136,12 +140,13 @@ def test_without_copies_a_replay_gives_the_graphs_own_outputs_which_the_next_rep
 
 def test_no_more_graphs_than_the_bound_and_a_failed_capture_runs_as_it_is(caplog):
     rng = np.random.default_rng(1)
-    passes, _ = _passes(max_graphs=2)
+    passes, cuda = _passes(max_graphs=2)
     for rows in (3, 3, 4, 4, 5, 5, 5):
         inputs = _inputs(rng, rows)
         for got, want in zip(passes(*inputs), _expected(*inputs)):
             torch.testing.assert_close(got, want, rtol=0, atol=0)
     assert len(passes) == 2 and passes.replays == 2  # 5 rows: past the bound, eager
+    assert cuda.emptied == 1  # the warm-up's cached blocks, before the first capture only
 
     passes, cuda = _passes()
     cuda.fail_capture = True
