@@ -94,7 +94,8 @@ def _passes(**kwargs):
     def run(a, b, mask):
         out = a * 2 + b.sum()
         return (out if mask is None else out * mask, a.sum(0))
-    passes = GraphedPasses(types.SimpleNamespace(cuda=cuda), cuda.recorded(run), **kwargs)
+    passes = GraphedPasses(types.SimpleNamespace(cuda=cuda, Tensor=torch.Tensor),
+                           cuda.recorded(run), **kwargs)
     return passes, cuda
 
 
@@ -136,6 +137,21 @@ def test_without_copies_a_replay_gives_the_graphs_own_outputs_which_the_next_rep
     fourth = passes(*inputs)
     torch.testing.assert_close(third[0], _expected(*inputs)[0], rtol=0, atol=0)
     assert fourth[0] is third[0]
+
+
+def test_a_value_that_is_not_a_tensor_is_part_of_the_signature_and_reaches_the_pass():
+    cuda = _FakeCuda()
+
+    def run(x, doubled):
+        return (x * 2 if doubled else x + 1,)
+    passes = GraphedPasses(types.SimpleNamespace(cuda=cuda, Tensor=torch.Tensor),
+                           cuda.recorded(run))
+    rng = np.random.default_rng(3)
+    for doubled in (True, True, False, False, True, False):
+        x = torch.from_numpy(rng.normal(size=(4, 2)))
+        torch.testing.assert_close(passes(x, doubled)[0], x * 2 if doubled else x + 1,
+                                   rtol=0, atol=0)
+    assert len(passes) == 2 and passes.replays == 4
 
 
 def test_no_more_graphs_than_the_bound_and_a_failed_capture_runs_as_it_is(caplog):

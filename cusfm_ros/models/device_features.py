@@ -5,6 +5,12 @@ host for every pass, they cost the thread that feeds the GPU a padded numpy batc
 buffers and copies per pass, and each image was prepared again for every pair it is in (the
 loops stage matches an image in ~3 pairs, the matching stage in ~6). Here each image is
 uploaded once, and a pass's batch is padded on the device.
+
+An image's row is ``[x, y, 1, descriptor]`` (``split``): the padding's rows are zeros, so a
+padded batch carries its own mask of real points, and a pass takes one tensor per side.
+Under other Python threads every torch call from the thread that feeds the GPU costs a wait
+for the GIL (street 300, H100: a LightGlue pass of ~400 calls took 410 ms beside 15 busy
+threads, 22 ms alone; ``bench/gpu_lightglue_graphs.py``): the fewer per pass, the better.
 """
 
 from __future__ import annotations
@@ -18,8 +24,18 @@ from cusfm_ros.core.features.lightglue import normalize_keypoints
 from cusfm_ros.core.features.types import Features
 
 
+KEYPOINTS, REAL, DESCRIPTORS = slice(0, 2), 2, slice(3, None)
+"""Columns of a row: normalized keypoint, 1 for a real point (0: padding), descriptor."""
+
+
+def split(rows):
+    """``(keypoints (..., 2), real points (...) bool, descriptors (..., D))``: views of rows
+    (an image's, or a padded batch's)."""
+    return rows[..., KEYPOINTS], rows[..., REAL] > 0, rows[..., DESCRIPTORS]
+
+
 class DeviceFeatures:
-    """``(normalized keypoints (N, 2), descriptors (N, D))`` float32 tensors on ``device`` for
+    """``[normalized keypoints | 1 | descriptors]`` (N, 3 + D) float32 rows on ``device`` for
     ``Features`` objects, keyed by the object: an entry goes when its object does (a stage
     that drops the features of images it is done with frees their device copies too), and
     the least recently used go past ``max_bytes``."""
@@ -33,11 +49,11 @@ class DeviceFeatures:
     def __len__(self) -> int:
         return len(self._entries)
 
-    def get(self, features: Features) -> tuple:
+    def get(self, features: Features):
+        """The image's rows (``split`` gives its parts)."""
         self._put_all([features])
         with self._lock:
-            entry = self._entries[id(features)]
-            return entry[1], entry[2]
+            return self._entries[id(features)][1]
 
     def _put_all(self, images: list[Features]) -> None:
         """Upload those of ``images`` not on the device yet, all in one copy: one pinned
@@ -62,8 +78,8 @@ class DeviceFeatures:
                 start += len(features)
                 if key in self._entries:
                     self._drop(key)
-                self._entries[key] = (weakref.ref(features, self._collected(key)),
-                                      rows[:, :2], rows[:, 2:], 4 * rows.numel())
+                self._entries[key] = (weakref.ref(features, self._collected(key)), rows,
+                                      4 * rows.numel())
                 self._bytes += 4 * rows.numel()
             # the least recently used first; never those of this call (at the end)
             current = len({id(features) for features in images})
@@ -80,38 +96,37 @@ class DeviceFeatures:
         return collected
 
     def _drop(self, key: int) -> None:
-        self._bytes -= self._entries.pop(key)[3]
+        self._bytes -= self._entries.pop(key)[2]
 
     def _upload(self, images: list[Features]):
-        """``[normalized keypoints | descriptors]`` rows of ``images`` as one float32 tensor
+        """``[normalized keypoints | 1 | descriptors]`` rows of ``images`` as one float32 tensor
         on the device, written straight into (pinned) host memory: built with ``np.c_``,
         concatenated and then pinned, each image was copied three times on the host (the
         loops stage's main thread spent a third of its time there, H100, 2026-12-06)."""
         rows = sum(len(f) for f in images)
-        columns = 2 + images[0].descriptors.shape[1]
+        columns = 3 + images[0].descriptors.shape[1]
         cuda = self.device.type == "cuda"
         # pinned, the copy does not wait for the passes still running on the device
         host = self.torch.empty((rows, columns), dtype=self.torch.float32, pin_memory=cuda)
         block, start = host.numpy(), 0
         for features in images:
             end = start + len(features)
-            block[start:end, :2] = normalize_keypoints(features.keypoints_px,
-                                                       features.image_size)
-            block[start:end, 2:] = features.descriptors
+            block[start:end, KEYPOINTS] = normalize_keypoints(features.keypoints_px,
+                                                              features.image_size)
+            block[start:end, REAL] = 1.0
+            block[start:end, DESCRIPTORS] = features.descriptors
             start = end
         return host.to(self.device, non_blocking=True) if cuda else host
 
     def padded_pairs(self, pairs: list[tuple[Features, Features]], sizes: tuple[int, int]
                      ) -> list:
-        """A pass's inputs, ``[keypoints0, keypoints1, descriptors0, descriptors1]``: side
-        ``s`` of every pair padded to ``sizes[s]`` points, keypoints (B, size, 2) and
-        descriptors (B, size, D), zeros after each image's own points, as the host batch
-        had. The images neither side has on the device yet go up in one block."""
+        """A pass's inputs, one (B, ``sizes[s]``, 3 + D) tensor per side ``s``: each pair's
+        image's rows, then zero rows (``split`` of it: keypoints, real points, descriptors).
+        The images neither side has on the device yet go up in one block."""
         self._put_all([features for pair in pairs for features in pair])
         with self._lock:
-            sides = [[self._entries[id(pair[side])][1:3] for pair in pairs] for side in (0, 1)]
-        return [self._padded([entry[part] for entry in sides[side]], sizes[side])
-                for part in (0, 1) for side in (0, 1)]
+            sides = [[self._entries[id(pair[side])][1] for pair in pairs] for side in (0, 1)]
+        return [self._padded(sides[side], sizes[side]) for side in (0, 1)]
 
     def _padded(self, tensors: list, size: int):
         """``tensors`` (N_i, C) -> (B, size, C), zeros after each one's rows."""

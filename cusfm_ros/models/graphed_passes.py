@@ -37,9 +37,10 @@ def graph_side(points: int, multiple: int = 1) -> int:
 
 
 class GraphedPasses:
-    """``run(*inputs)`` (tensors on one CUDA device, or None) returning a tuple of tensors,
-    replayed from a CUDA graph per signature (each input's shape and dtype, None where it is
-    None) from that signature's second call on. ``context()`` is entered around every eager
+    """``run(*inputs)`` (tensors on one CUDA device, and other values that decide what the
+    pass does, such as None or a flag) returning a tuple of tensors, replayed from a CUDA
+    graph per signature (each tensor's shape and dtype, each other value itself) from that
+    signature's second call on. ``context()`` is entered around every eager
     run and capture (autocast and the matmul precision: a replay keeps what was captured);
     it must not use autocast's weight cache, whose casts would be freed under the graph.
 
@@ -65,7 +66,9 @@ class GraphedPasses:
         return len(self._graphs)
 
     def __call__(self, *inputs):
-        key = tuple(None if t is None else (tuple(t.shape), t.dtype) for t in inputs)
+        tensor = self.torch.Tensor
+        key = tuple((tuple(t.shape), t.dtype) if isinstance(t, tensor) else ("value", t)
+                    for t in inputs)
         with self._lock:
             graph = self._graphs.get(key)
             if graph is None and self._worth_capturing(key):
@@ -79,9 +82,9 @@ class GraphedPasses:
                 with self.context():
                     return tuple(self.run(*inputs))
             cuda_graph, static_inputs, static_outputs = graph
-            for static, tensor in zip(static_inputs, inputs):
-                if static is not None:
-                    static.copy_(tensor)
+            for static, value in zip(static_inputs, inputs):
+                if isinstance(static, tensor):
+                    static.copy_(value)
             cuda_graph.replay()
             self.replays += 1
             return self._results(static_outputs)

@@ -26,7 +26,7 @@ from cusfm_ros.core.features.xfeat import (DESCRIPTOR_DIM, XFeatOptions, feature
                                            network_input, network_mask)
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
-from cusfm_ros.models.device_features import DeviceFeatures
+from cusfm_ros.models.device_features import DeviceFeatures, split
 from cusfm_ros.models.graphed_passes import GraphedPasses, graph_side
 from cusfm_ros.models.nets.aliked import detect_keypoints_batch
 from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
@@ -194,6 +194,22 @@ class _TorchLayerSteps:
         return self._assign[index](desc0, desc1)
 
 
+def _network_inputs(sides, filled) -> tuple[list, list]:
+    """``([keypoints0, keypoints1, descriptors0, descriptors1], [mask0, mask1])`` of a pass's
+    two padded sides (``DeviceFeatures.padded_pairs``); no mask on a side every pair fills."""
+    parts = [split(side) for side in sides]
+    return ([parts[0][0], parts[1][0], parts[0][2], parts[1][2]],
+            [None if full else part[1] for part, full in zip(parts, filled)])
+
+
+def _packed(partner, confidence, valid):
+    """(B, M, 3) float32: each point's partner (exact: indices below 2^24), confidence and
+    validity (1 or 0), one tensor to copy back instead of three."""
+    import torch
+
+    return torch.stack([partner.float(), confidence.float(), valid.float()], -1)
+
+
 class TorchLightGlueMatcher:
     parallel_pairs = True
     """Pairs may be matched at once from CPU threads (the GPU queues their kernels)."""
@@ -218,9 +234,12 @@ class TorchLightGlueMatcher:
             self.graphed = GraphedPasses(torch, self._network_pass,
                                          lambda: self._precision(weight_cache=False))
 
-    def _network_pass(self, *inputs) -> tuple:
-        """The network and the mutual-best filter on a padded batch (``_launch``)."""
-        return mutual_best(self.model(*inputs), self.options.filter_threshold)
+    def _network_pass(self, side0, side1, filled0: bool, filled1: bool) -> tuple:
+        """The network and the mutual-best filter on a padded batch (``_launch``): one
+        (B, M, 3) tensor of each point's partner, confidence and validity."""
+        inputs, masks = _network_inputs((side0, side1), (filled0, filled1))
+        return (_packed(*mutual_best(self.model(*inputs, *masks),
+                                     self.options.filter_threshold)),)
 
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
@@ -388,10 +407,13 @@ class TorchLightGlueMatcher:
     def _launch(self, pairs: list[tuple[Features, Features]]) -> tuple:
         """One pass over pairs padded to the largest side of each image (rounded up to
         ``pad_multiple``, and to ``graph_side`` where passes are replayed as CUDA graphs:
-        ``GraphedPasses``), masks marking the real points (``LightGlueNet.forward``; none on a
-        side no pair pads); the mutual-best filter runs on the device and only each point's
-        partner, confidence and validity come back, copied to pinned host memory behind the
-        pass (an event marks their arrival). ``_collect`` turns it into matches."""
+        ``GraphedPasses``), the padded rows marking the real points (``DeviceFeatures``;
+        ``LightGlueNet.forward`` masks them, except on a side every pair fills); the
+        mutual-best filter runs on the device and only each point's partner, confidence and
+        validity come back, as one tensor copied to pinned host memory behind the pass (an
+        event marks its arrival). ``_collect`` turns it into matches. The thread that feeds
+        the GPU makes a dozen torch calls per pass here (where it made ~25, each a wait for
+        the GIL while the verification threads run)."""
         torch = self.torch
         counts = np.array([(len(a), len(b)) for a, b in pairs])
         multiple = self.options.pad_multiple
@@ -399,29 +421,23 @@ class TorchLightGlueMatcher:
             size = np.array([graph_side(int(n), multiple) for n in counts.max(0)])
         else:
             size = -(-counts.max(0) // multiple) * multiple
-        masks = [np.arange(n)[None] < counts[:, side, None] for side, n in enumerate(size)]
+        # a side every pair fills needs no mask (the flash kernel takes none)
+        filled = tuple(bool((counts[:, side] == size[side]).all()) for side in (0, 1))
         cuda = self.device.type == "cuda"
         with torch.inference_mode():
-            def tensor(array):
-                host = torch.from_numpy(array)
-                # from pinned memory the copy does not wait for the passes still running
-                return (host.pin_memory() if cuda else host).to(self.device, non_blocking=True)
-
-            # a side every pair fills needs no mask (the flash kernel takes none)
-            masks = [None if m.all() else tensor(m) for m in masks]
-            inputs = self.resident.padded_pairs(pairs, size)
+            sides = self.resident.padded_pairs(pairs, size)
             if self.options.depth_confidence > 0:
                 with self._precision():
-                    found = self._early_exit_pass(inputs, masks)
+                    found = _packed(*self._early_exit_pass(*_network_inputs(sides, filled)))
             elif self.graphed is not None:
-                found = self.graphed(*inputs, *masks)
+                found, = self.graphed(*sides, *filled)
             else:
                 with self._precision():
-                    found = self._network_pass(*inputs, *masks)
+                    found, = self._network_pass(*sides, *filled)
             if not cuda:
                 return counts, found, None
             arrived = torch.cuda.Event()
-            found = [t.to("cpu", non_blocking=True) for t in found]
+            found = found.to("cpu", non_blocking=True)
             arrived.record(torch.cuda.current_stream(self.device))  # the pass's stream
         return counts, found, arrived
 
@@ -430,7 +446,8 @@ class TorchLightGlueMatcher:
         counts, found, arrived = passed
         if arrived is not None:
             arrived.synchronize()
-        partner, confidence, valid = (t.numpy() for t in found)
+        found = found.numpy()
+        partner, confidence, valid = found[..., 0], found[..., 1], found[..., 2] > 0
         results = []
         for b, (n0, _) in enumerate(counts):
             index0 = np.nonzero(valid[b, :n0])[0]
