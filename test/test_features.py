@@ -481,6 +481,19 @@ def test_torch_backend_on_cuda_equals_onnx_on_cpu(aliked, lightglue, motorcycle)
     _torch_backend_agrees("cuda", aliked, lightglue, motorcycle)
 
 
+def _first(f: Features, n: int) -> Features:
+    """The first ``n`` keypoints of ``f``."""
+    return Features(f.keypoints_px[:n], f.scores[:n], f.descriptors[:n], f.image_size)
+
+
+def _motorcycle_on_cuda(motorcycle) -> tuple[Features, Features]:
+    """ALIKED's features (at most 2048) of the motorcycle pair, extracted on the GPU."""
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor
+
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda"))
+    return tuple(extractor.extract(image) for image in motorcycle)
+
+
 def _batched_lightglue_equals_one_pair_at_a_time(device, motorcycle):
     """Pairs of different sizes padded into one batch (masks) give each pair's own matches."""
     from cusfm_ros.core.features.lightglue import LightGlueOptions
@@ -489,11 +502,8 @@ def _batched_lightglue_equals_one_pair_at_a_time(device, motorcycle):
     extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=1024, device=device))
     f0, f1 = (extractor.extract(image) for image in motorcycle)
 
-    def first(f, n):
-        return Features(f.keypoints_px[:n], f.scores[:n], f.descriptors[:n], f.image_size)
-
-    pairs = [(f0, f1), (first(f0, 300), f1), (first(f1, 500), first(f0, 700)),
-             (f0, first(f1, 1)), (f1, f0)]
+    pairs = [(f0, f1), (_first(f0, 300), f1), (_first(f1, 500), _first(f0, 700)),
+             (f0, _first(f1, 1)), (f1, f0)]
     # fp32 on a GPU too: the padding's exactness, not fp16's rounding, is what is checked here
     matcher = TorchLightGlueMatcher(LightGlueOptions(device=device, batch_pairs=3,
                                                      half_precision=False))
@@ -689,15 +699,11 @@ def test_reduced_precision_lightglue_on_cuda_keeps_the_fp32_matches(motorcycle):
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
     from cusfm_ros.core.features.lightglue import LightGlueOptions
-    from cusfm_ros.models.torch_backend import TorchAlikedExtractor, TorchLightGlueMatcher
+    from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
 
-    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda"))
-    f0, f1 = (extractor.extract(image) for image in motorcycle)
+    f0, f1 = _motorcycle_on_cuda(motorcycle)
 
-    def first(f, n):
-        return Features(f.keypoints_px[:n], f.scores[:n], f.descriptors[:n], f.image_size)
-
-    pairs = [(first(f0, n0), first(f1, n1)) for n0, n1 in ((2048, 2048), (1600, 2048),
+    pairs = [(_first(f0, n0), _first(f1, n1)) for n0, n1 in ((2048, 2048), (1600, 2048),
                                                            (2048, 1700), (1800, 1900))]
     flags_before = torch.backends.cuda.cudnn_sdp_enabled()
     precision_before = torch.get_float32_matmul_precision()
@@ -746,17 +752,13 @@ def test_lightglue_passes_replayed_as_cuda_graphs_give_the_matches_of_uncaptured
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
     from cusfm_ros.core.features.lightglue import LightGlueOptions
-    from cusfm_ros.models.torch_backend import TorchAlikedExtractor, TorchLightGlueMatcher
+    from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
 
-    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda"))
-    f0, f1 = (extractor.extract(image) for image in motorcycle)
-
-    def first(f, n):
-        return Features(f.keypoints_px[:n], f.scores[:n], f.descriptors[:n], f.image_size)
+    f0, f1 = _motorcycle_on_cuda(motorcycle)
 
     # two passes of 2 pairs, both padded to 2048 x 2048: one shape, other inputs
-    pairs = [(first(f0, 2000), first(f1, 1990)), (first(f0, 1500), f1),
-             (f1, first(f0, 1985)), (first(f1, 1999), first(f0, 1600))]
+    pairs = [(_first(f0, 2000), _first(f1, 1990)), (_first(f0, 1500), f1),
+             (f1, _first(f0, 1985)), (_first(f1, 1999), _first(f0, 1600))]
     options = dict(device="cuda", batch_pairs=2, half_precision=half_precision)
     graphed = TorchLightGlueMatcher(LightGlueOptions(**options))
     assert graphed.graphed is not None
