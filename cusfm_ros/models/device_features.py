@@ -19,7 +19,6 @@ import threading
 import weakref
 from collections import OrderedDict
 
-
 from cusfm_ros.core.features.lightglue import normalize_keypoints
 from cusfm_ros.core.features.types import Features
 
