@@ -89,6 +89,52 @@ def test_tracks_equal_a_plain_greedy_union_find(rng):
     assert found == expected
 
 
+def test_greedy_rebuild_in_lock_step_equals_the_loop(rng, monkeypatch):
+    """The inconsistent components rebuilt in lock step (numpy, one edge of every component
+    per round) give the Python loop's roots and refusals: small components, ones seeing more
+    than 64 images (two words of image bits per set) and ones seeing more than 256 (left to
+    the loop), whichever way the cost model splits them."""
+    from cusfm_ros.core.mapping import tracks as tracks_module
+
+    per_image = 40
+    chains = [range(0, 10), range(10, 110), range(110, 410)]  # 10, 100 and 300 images
+    pairs = [(i, j) for chain in chains for i in chain for j in (i + 1, i + 2) if j in chain]
+    matches, confidences = _noisy_matches(rng, pairs, per_image, 30, 0.15)
+    ends = [np.stack([i * per_image + m[:, 0], j * per_image + m[:, 1]], 1)
+            for i, j, m in matches]
+    edges = np.concatenate(ends)[np.argsort(-np.concatenate(confidences), kind="stable")]
+    nodes = np.unique(edges)
+    item = (nodes, nodes // per_image, edges)
+    expected_roots, expected_skipped = tracks_module._split_inconsistent(*item)
+    assert expected_skipped > 100
+    calls = {"lockstep": [], "loop": []}
+    lockstep, loop = tracks_module._split_lockstep, tracks_module._split_inconsistent
+
+    def spy_lockstep(compact, local_image, edge_component, num_nodes):
+        calls["lockstep"].append(int(local_image.max()) + 1)
+        return lockstep(compact, local_image, edge_component, num_nodes)
+
+    def spy_loop(nodes, image_of, edges):
+        calls["loop"].append(len(np.unique(image_of)))
+        return loop(nodes, image_of, edges)
+
+    monkeypatch.setattr(tracks_module, "_split_lockstep", spy_lockstep)
+    monkeypatch.setattr(tracks_module, "_split_inconsistent", spy_loop)
+    for step_s, edge_s in ((40e-6, 1e-6), (0.0, 1.0), (1.0, 0.0)):
+        monkeypatch.setattr(tracks_module, "LOCKSTEP_STEP_S", step_s)
+        monkeypatch.setattr(tracks_module, "LOOP_EDGE_S", edge_s)
+        calls["lockstep"].clear(), calls["loop"].clear()
+        got_nodes, roots, skipped = tracks_module.split_components(item)
+        np.testing.assert_array_equal(got_nodes, nodes)
+        np.testing.assert_array_equal(roots, expected_roots)
+        assert skipped == expected_skipped
+        if edge_s == 1.0:  # all in lock step but the components of over 256 images
+            assert calls["lockstep"] and max(calls["lockstep"]) > 64
+            assert calls["loop"] and min(calls["loop"]) > 256
+        if step_s == 1.0:
+            assert not calls["lockstep"] and calls["loop"]
+
+
 def test_tracks_rebuilt_in_groups_on_worker_processes_are_the_same(rng, monkeypatch):
     """The inconsistent components rebuilt in groups, on two worker processes: the same
     tracks, in the same order, and the same rejections as one pass over every match."""

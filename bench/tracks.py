@@ -1,0 +1,72 @@
+"""The mapping stage's feature tracks (``build_tracks``) on a finished run's verified matches:
+seconds in this process and on worker processes as the stage runs them, the size of the
+inconsistent components that the greedy rebuild goes through, and whether both give the same
+tracks.
+
+    python bench/tracks.py RUN_DIR [--repeat 3] [--processes 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cusfm_ros.core.mapping.tracks import build_tracks
+from cusfm_ros.io.feature_store import FeatureStore
+from cusfm_ros.io.pairs_file import read_pairs
+from cusfm_ros.io.run_dir import RunDir
+from cusfm_ros.pipeline.parallel import thread_count
+from cusfm_ros.pipeline.stages.mapping import _track_workers
+from cusfm_ros.pipeline.stores import load_keyframes
+
+
+def _inputs(run: RunDir) -> tuple[list[int], list, list]:
+    """Keypoint counts per image and (image0, image1, matches) by image index, as the
+    mapping stage hands them to ``build_tracks``."""
+    images = [k.image_name for k in load_keyframes(run).images_in_time_order()]
+    index = {name: i for i, name in enumerate(images)}
+    with FeatureStore(run.features, {}, read_only=True) as store:
+        counts = [len(store.keypoints(name)) for name in images]
+    with FeatureStore(run.verified_matches, {}, read_only=True) as verified:
+        matches = [(index[a], index[b], verified.matches(a, b)) for a, b in read_pairs(run.pairs)]
+    used = [(i, j, m) for i, j, m in matches if len(m)]
+    return counts, [(i, j, m.indices) for i, j, m in used], [m.confidences for *_, m in used]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--processes", type=int, default=0, help="0: every core")
+    args = parser.parse_args()
+    counts, matches, confidences = _inputs(RunDir(args.run))
+    map_groups, groups = _track_workers(args.processes)
+    results, rows = {}, []
+    for name, how in (("this process", (None, 1)), (f"{thread_count(args.processes)} "
+                                                     "processes", (map_groups, groups))):
+        if name != "this process" and how[0] is None:
+            continue
+        seconds = []
+        for _ in range(args.repeat):
+            tick = time.perf_counter()
+            results[name] = build_tracks(counts, matches, confidences=confidences,
+                                         map_groups=how[0], groups=how[1])
+            seconds.append(time.perf_counter() - tick)
+        rows.append((name, min(seconds), max(seconds)))
+    first = next(iter(results.values()))
+    same = all(np.array_equal(getattr(t, f), getattr(first, f)) and t.rejected == first.rejected
+               for t in results.values() for f in ("image", "keypoint", "offsets"))
+    print(f"{args.run}: {len(counts)} images, {len(matches)} pairs, "
+          f"{sum(len(m) for *_, m in matches)} matches -> {len(first)} tracks, "
+          f"{len(first.image)} observations, {first.rejected} matches refused; "
+          f"the same tracks every way: {same}")
+    print("| where | fastest s | slowest s |\n|---|---|---|")
+    for name, fastest, slowest in rows:
+        print(f"| {name} | {fastest:.3f} | {slowest:.3f} |")
+
+
+if __name__ == "__main__":
+    main()
