@@ -3,17 +3,21 @@ seconds in this process and on worker processes as the stage runs them, the size
 inconsistent components that the greedy rebuild goes through, and whether both give the same
 tracks.
 
-    python bench/tracks.py RUN_DIR [--repeat 3] [--processes 0]
+    python bench/tracks.py RUN_DIR [--repeat 3] [--processes 0] [--dump FILE.npz]
+
+``--dump`` writes the inputs (keypoint counts, matches, confidences) for a run elsewhere.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from unittest import mock
 from pathlib import Path
 
 import numpy as np
 
+from cusfm_ros.core.mapping import tracks as tracks_module
 from cusfm_ros.core.mapping.tracks import build_tracks
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.pairs_file import read_pairs
@@ -36,13 +40,52 @@ def _inputs(run: RunDir) -> tuple[list[int], list, list]:
     return counts, [(i, j, m.indices) for i, j, m in used], [m.confidences for *_, m in used]
 
 
+def _components(counts, matches, confidences) -> str:
+    """What the greedy rebuild gets: the inconsistent components' count, edges, the largest,
+    and how many of their edges the cost model leaves to the Python loop, with seconds."""
+    seen = []
+    split = tracks_module.split_components
+    loop = tracks_module._split_inconsistent
+    timing = {"loop edges": 0, "loop s": 0.0}
+
+    def spy_split(item):
+        nodes, image_of, edges = item
+        seen.append((len(nodes), len(edges)))
+        return split(item)
+
+    def spy_loop(nodes, image_of, edges):
+        tick = time.perf_counter()
+        result = loop(nodes, image_of, edges)
+        timing["loop edges"] += len(edges)
+        timing["loop s"] += time.perf_counter() - tick
+        return result
+
+    with mock.patch.object(tracks_module, "split_components", spy_split), \
+            mock.patch.object(tracks_module, "_split_inconsistent", spy_loop):
+        tick = time.perf_counter()
+        build_tracks(counts, matches, confidences=confidences)
+        total = time.perf_counter() - tick
+    nodes, edges = (sum(s[i] for s in seen) for i in (0, 1))
+    return (f"inconsistent components: {nodes} observations, {edges} matches; "
+            f"{timing['loop edges']} of them in the Python loop ({timing['loop s']:.3f} s) "
+            f"of build_tracks' {total:.3f} s")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--processes", type=int, default=0, help="0: every core")
+    parser.add_argument("--dump", type=Path, help="write the inputs here (.npz)")
     args = parser.parse_args()
     counts, matches, confidences = _inputs(RunDir(args.run))
+    if args.dump:
+        np.savez_compressed(args.dump, counts=np.asarray(counts),
+                            pairs=np.array([(i, j) for i, j, _ in matches]),
+                            sizes=np.array([len(m) for *_, m in matches]),
+                            indices=np.concatenate([m for *_, m in matches]),
+                            confidences=np.concatenate(confidences))
+    print(_components(counts, matches, confidences))
     map_groups, groups = _track_workers(args.processes)
     results, rows = {}, []
     for name, how in (("this process", (None, 1)), (f"{thread_count(args.processes)} "

@@ -272,8 +272,10 @@ def build_tracks(num_keypoints: list[int], pair_matches: list[tuple[int, int, np
         edges = np.stack([rows[edge_sel], cols[edge_sel]], axis=1)
         edges = edges[np.argsort(-scores[edge_sel], kind="stable")]  # most confident first
         parallel = map_groups is not None and len(edges) >= PARALLEL_MIN_EDGES
-        items = _component_groups(label, bad_nodes, image_of_node[bad_nodes], edges,
-                                  groups if parallel else 1)
+        # one group: the components need no cutting apart (each one's edges keep their
+        # merge order within the whole list, which is all the rebuild reads)
+        items = (_component_groups(label, bad_nodes, image_of_node[bad_nodes], edges, groups)
+                 if parallel and groups > 1 else [(bad_nodes, image_of_node[bad_nodes], edges)])
         fresh = label.max() + 1
         label = label.copy()
         for group_nodes, roots, group_skipped in (map_groups if parallel else map)(
