@@ -3,7 +3,7 @@ own pairs, with and without other Python threads holding the GIL (the stages ver
 CPU threads while the main thread launches the next pass).
 
 Usage (on a GPU machine, after a run): ``python bench/gpu_lightglue_graphs.py RUN_DIR
-[--pairs 1024] [--busy-threads 0 15]``
+[--pairs 1024] [--busy-threads 0 15] [--switch-interval-ms 5 1] [--graphs on off]``
 
 The pairs of ``RUN_DIR/pairs/pairs.txt`` in order, 16 a pass, launched as the stages do (one
 pass in flight while the next is prepared: ``submit_many``). Prints per variant: wall ms
@@ -17,6 +17,7 @@ not timed. Asserts nothing.
 from __future__ import annotations
 
 import argparse
+import sys
 import threading
 import time
 from pathlib import Path
@@ -63,6 +64,9 @@ def main() -> None:
     parser.add_argument("run", type=Path)
     parser.add_argument("--pairs", type=int, default=1024)
     parser.add_argument("--busy-threads", type=int, nargs="+", default=[0, 15])
+    parser.add_argument("--switch-interval-ms", type=float, nargs="+", default=[5.0],
+                        help="Python's GIL switch interval while the threads run")
+    parser.add_argument("--graphs", nargs="+", choices=("off", "on"), default=["off", "on"])
     args = parser.parse_args()
     assert torch.cuda.is_available(), "needs a CUDA GPU"
     pairs = [line.split() for line in (args.run / "pairs" / "pairs.txt").read_text().splitlines()
@@ -74,34 +78,40 @@ def main() -> None:
                for start in range(0, len(pairs), batch_pairs)]
     print(f"device: {torch.cuda.get_device_name()} torch {torch.__version__}; {len(pairs)} "
           f"pairs, {len(batches)} passes of {batch_pairs}")
-    print("| graphs | busy threads | ms per pass | main thread ms per pass | graphs | replays "
-          "| matches as uncaptured |\n|---|---|---|---|---|---|---|", flush=True)
+    print("| graphs | busy threads | switch interval ms | ms per pass | main thread ms per pass "
+          "| graphs | replays | matches as uncaptured |\n|---|---|---|---|---|---|---|---|",
+          flush=True)
     reference = None
-    for busy_threads in args.busy_threads:
-        for graphs in (False, True):
-            matcher = TorchLightGlueMatcher(LightGlueOptions(device="cuda", cuda_graphs=graphs))
-            _sweep(matcher, batches)  # first shapes, captures
-            stop = threading.Event()
-            threads = [threading.Thread(target=_busy, args=(stop, seed), daemon=True)
-                       for seed in range(busy_threads)]
+    variants = [(busy, interval, graphs == "on") for busy in args.busy_threads
+                for interval in (args.switch_interval_ms if busy else [5.0])
+                for graphs in args.graphs]
+    for busy_threads, interval_ms, graphs in variants:
+        matcher = TorchLightGlueMatcher(LightGlueOptions(device="cuda", cuda_graphs=graphs))
+        _sweep(matcher, batches)  # first shapes, captures
+        stop = threading.Event()
+        threads = [threading.Thread(target=_busy, args=(stop, seed), daemon=True)
+                   for seed in range(busy_threads)]
+        for thread in threads:
+            thread.start()
+        previous = sys.getswitchinterval()
+        sys.setswitchinterval(interval_ms / 1000)
+        try:
+            found, wall, host = _sweep(matcher, batches)
+        finally:
+            sys.setswitchinterval(previous)
+            stop.set()
             for thread in threads:
-                thread.start()
-            try:
-                found, wall, host = _sweep(matcher, batches)
-            finally:
-                stop.set()
-                for thread in threads:
-                    thread.join()
-            if reference is None:
-                reference = found
-            same = sum(len({tuple(m) for m in a.indices} & {tuple(m) for m in b.indices})
-                       for a, b in zip(found, reference))
-            total = sum(len(m) for m in reference)
-            graphed = matcher.graphed
-            print(f"| {'on' if graphs else 'off'} | {busy_threads} | "
-                  f"{1000 * wall / len(batches):.2f} | {1000 * host / len(batches):.2f} | "
-                  f"{len(graphed) if graphed else '-'} | {graphed.replays if graphed else '-'} "
-                  f"| {same / max(total, 1):.4f} |", flush=True)
+                thread.join()
+        if reference is None:
+            reference = found
+        same = sum(len({tuple(m) for m in a.indices} & {tuple(m) for m in b.indices})
+                   for a, b in zip(found, reference))
+        total = sum(len(m) for m in reference)
+        graphed = matcher.graphed
+        print(f"| {'on' if graphs else 'off'} | {busy_threads} | {interval_ms:g} | "
+              f"{1000 * wall / len(batches):.2f} | {1000 * host / len(batches):.2f} | "
+              f"{len(graphed) if graphed else '-'} | {graphed.replays if graphed else '-'} "
+              f"| {same / max(total, 1):.4f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from cusfm_ros.errors import ConfigError
-from cusfm_ros.pipeline.parallel import chunks, ordered_map, process_map, thread_count
+from cusfm_ros.pipeline.parallel import (GIL_SWITCH_INTERVAL_S, chunks, ordered_map, process_map,
+                                        short_gil_switch, thread_count)
 
 
 def test_ordered_map_keeps_the_order_on_any_thread_count():
@@ -21,6 +22,27 @@ def test_ordered_map_keeps_the_order_on_any_thread_count():
             [(i, math.factorial(i)) for i in items]
     with pytest.raises(ConfigError, match="cpu_threads must be >= 0"):
         thread_count(-1)
+
+
+def test_thread_pools_hand_the_gil_over_sooner_while_they_run():
+    """While a pool's threads run, the switch interval is GIL_SWITCH_INTERVAL_S (so the main
+    thread feeding the GPU waits less for the GIL); overlapping users keep it until the last
+    one leaves, and then Python's interval comes back, also after an error."""
+    before = sys.getswitchinterval()
+    assert before > GIL_SWITCH_INTERVAL_S
+    seen = [interval for _, interval in ordered_map(lambda _: sys.getswitchinterval(),
+                                                     range(8), 2)]
+    assert seen == [GIL_SWITCH_INTERVAL_S] * 8 and sys.getswitchinterval() == before
+    assert [i for i, _ in ordered_map(abs, range(3), 1)] == [0, 1, 2]
+    with short_gil_switch():
+        inner = ordered_map(abs, range(4), 2)
+        next(inner)
+        with pytest.raises(ZeroDivisionError):
+            list(ordered_map(lambda i: 1 // 0 if i == 2 else i, range(4), 2))
+        assert sys.getswitchinterval() == GIL_SWITCH_INTERVAL_S
+        list(inner)
+        assert sys.getswitchinterval() == GIL_SWITCH_INTERVAL_S
+    assert sys.getswitchinterval() == before
 
 
 def test_chunks_take_the_items_as_they_come():
