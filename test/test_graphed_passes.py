@@ -6,6 +6,7 @@ real thing is checked on a GPU (marked ``gpu``)."""
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import types
 
@@ -39,6 +40,7 @@ class _FakeCuda:
         self.capturing = None
         self.fail_capture = False
         self.emptied = 0
+        self.gc_during_capture = []
 
     def Stream(self):  # noqa: N802 - torch's name
         return types.SimpleNamespace(wait_stream=lambda other: None)
@@ -63,6 +65,7 @@ class _FakeCuda:
 
             def capture_begin(self, pool=None, capture_error_mode="global"):
                 cuda.capturing = self
+                cuda.gc_during_capture.append(gc.isenabled())
                 self.work = []
 
             def capture_end(self):
@@ -111,13 +114,15 @@ def _expected(a, b, mask):
 
 def test_a_shape_is_captured_on_its_second_pass_and_replayed_with_new_inputs_after():
     rng = np.random.default_rng(0)
-    passes, _ = _passes()
+    passes, cuda = _passes()
     results = []
     for rows, mask in [(5, False), (5, False), (5, False), (6, False), (5, True), (5, False)]:
         inputs = _inputs(rng, rows, mask)
         results.append((passes(*inputs), _expected(*inputs)))
     # 5 rows: eager, captured and replayed, replayed twice; 6 rows and the mask: eager
     assert len(passes) == 1 and passes.replays == 3
+    # no garbage collection while capturing (freeing an old graph then fails the capture)
+    assert cuda.gc_during_capture == [False] and gc.isenabled()
     for ours, theirs in results:
         for got, want in zip(ours, theirs):
             torch.testing.assert_close(got, want, rtol=0, atol=0)

@@ -15,6 +15,7 @@ all in one memory pool, replayed under a lock.
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import threading
 from collections import Counter
@@ -34,6 +35,22 @@ def graph_side(points: int, multiple: int = 1) -> int:
     step = max(64, (1 << (points - 1).bit_length()) // 16)
     size = -(-points // step) * step
     return -(-size // multiple) * multiple
+
+
+@contextlib.contextmanager
+def _gc_paused():
+    """No garbage collection while a graph captures (as ``torch.cuda.graph`` does): one
+    that runs in the capturing thread and frees an old CUDA graph (a matcher of an earlier
+    stage) makes a call that a capture forbids, and the capture fails (seen on the H100
+    machine with the switch interval at 0.2 ms: "operation not permitted when stream is
+    capturing", then every pass uncaptured)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
 
 
 class GraphedPasses:
@@ -118,7 +135,7 @@ class GraphedPasses:
             # and empties the device's and the pinned host memory caches at every capture
             graph = torch.cuda.CUDAGraph()
             self._stream.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(self._stream), self.context():
+            with torch.cuda.stream(self._stream), self.context(), _gc_paused():
                 graph.capture_begin(pool=self._pool, capture_error_mode="thread_local")
                 try:
                     outputs = tuple(self.run(*inputs))
