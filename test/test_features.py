@@ -888,3 +888,21 @@ def test_descriptor_head_over_a_batch_equals_it_image_by_image():
     assert batched.shape == (22, 128)
     torch.testing.assert_close(batched, alone, atol=1e-5, rtol=1e-5)
     assert head.forward_batch(features, [torch.zeros((0, 2))] * 3).shape == (0, 128)
+
+
+def test_stages_share_one_torch_matcher_per_configuration():
+    """The loops, pose graph and matching stages (and a localizer) get one torch matcher per
+    configuration: its weights loaded and its CUDA graphs captured once per process."""
+    pytest.importorskip("torch")
+    from dataclasses import replace
+
+    from cusfm_ros.pipeline.components import FeatureOptions, LazyMatcher, make_matcher
+
+    options = FeatureOptions(backend="torch")
+    first = make_matcher(options, "cpu")
+    assert make_matcher(options, "cpu") is first
+    assert LazyMatcher(options, "cpu")._built() is first
+    stricter = replace(options, matcher=replace(options.matcher, lightglue=replace(
+        options.matcher.lightglue, filter_threshold=0.2)))
+    assert make_matcher(stricter, "cpu") is not first
+    assert make_matcher(stricter, "cpu").options.filter_threshold == 0.2

@@ -15,7 +15,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from cusfm_ros.models.graphed_passes import GraphedPasses, graph_side  # noqa: E402
+from cusfm_ros.models.graphed_passes import GraphedPasses, graph_side, pass_counts  # noqa: E402
+from cusfm_ros.pipeline.runner import _graph_passes_since  # noqa: E402
 
 
 def test_graph_side_rounds_up_to_few_sizes_and_little_more():
@@ -114,7 +115,7 @@ def _expected(a, b, mask):
 
 def test_a_shape_is_captured_on_its_second_pass_and_replayed_with_new_inputs_after():
     rng = np.random.default_rng(0)
-    passes, cuda = _passes()
+    passes, cuda = _passes(name="shapes test")
     results = []
     for rows, mask in [(5, False), (5, False), (5, False), (6, False), (5, True), (5, False)]:
         inputs = _inputs(rng, rows, mask)
@@ -123,6 +124,13 @@ def test_a_shape_is_captured_on_its_second_pass_and_replayed_with_new_inputs_aft
     assert len(passes) == 1 and passes.replays == 3
     # no garbage collection while capturing (freeing an old graph then fails the capture)
     assert cuda.gc_during_capture == [False] and gc.isenabled()
+    # the process's counts by name, which the runner records per stage
+    counts = pass_counts()["shapes test"]
+    assert (counts["eager"], counts["captured"], counts["replayed"]) == (3, 1, 3)
+    assert counts["capture_s"] > 0
+    before = pass_counts()
+    passes(*_inputs(rng, 5))
+    assert _graph_passes_since(before) == {"shapes test": {"replayed": 1}}
     for ours, theirs in results:
         for got, want in zip(ours, theirs):
             torch.testing.assert_close(got, want, rtol=0, atol=0)

@@ -18,6 +18,7 @@ import contextlib
 import gc
 import logging
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable
 
@@ -35,6 +36,23 @@ def graph_side(points: int, multiple: int = 1) -> int:
     step = max(64, (1 << (points - 1).bit_length()) // 16)
     size = -(-points // step) * step
     return -(-size // multiple) * multiple
+
+
+_COUNTS: dict[str, Counter] = {}
+_COUNTS_LOCK = threading.Lock()
+
+
+def _count(name: str, **amounts: float) -> None:
+    with _COUNTS_LOCK:
+        _COUNTS.setdefault(name, Counter()).update(amounts)
+
+
+def pass_counts() -> dict[str, dict[str, float]]:
+    """Every ``GraphedPasses``' passes in this process so far, by name: ``eager`` (run as
+    they are: a signature's first pass, or captures off), ``captured`` (with ``capture_s``)
+    and ``replayed``; the runner records each stage's share in its report entry."""
+    with _COUNTS_LOCK:
+        return {name: dict(counts) for name, counts in _COUNTS.items()}
 
 
 @contextlib.contextmanager
@@ -68,9 +86,9 @@ class GraphedPasses:
     batch). Nothing here is valid on a CPU device."""
 
     def __init__(self, torch, run: Callable, context: Callable = contextlib.nullcontext,
-                 max_graphs: int = 64, copy_outputs: bool = True) -> None:
+                 max_graphs: int = 64, copy_outputs: bool = True, name: str = "passes") -> None:
         self.torch, self.run, self.context, self.max_graphs = torch, run, context, max_graphs
-        self.copy_outputs = copy_outputs
+        self.copy_outputs, self.name = copy_outputs, name
         self._graphs: dict[tuple, tuple] = {}
         self._seen: Counter = Counter()
         self._pool = None
@@ -89,13 +107,17 @@ class GraphedPasses:
         with self._lock:
             graph = self._graphs.get(key)
             if graph is None and self._worth_capturing(key):
+                tick = time.perf_counter()
                 graph = self._capture(key, inputs)
                 if graph is not None:
+                    _count(self.name, captured=1, capture_s=time.perf_counter() - tick)
                     # the inputs were captured in place: no copy to make this time
                     graph[0].replay()
                     self.replays += 1
+                    _count(self.name, replayed=1)
                     return self._results(graph[2])
             if graph is None:
+                _count(self.name, eager=1)
                 with self.context():
                     return tuple(self.run(*inputs))
             cuda_graph, static_inputs, static_outputs = graph
@@ -104,6 +126,7 @@ class GraphedPasses:
                     static.copy_(value)
             cuda_graph.replay()
             self.replays += 1
+            _count(self.name, replayed=1)
             return self._results(static_outputs)
 
     def _results(self, outputs: tuple) -> tuple:

@@ -81,7 +81,8 @@ class TorchAlikedExtractor:
         self.dense = self.model.dense
         if self.device.type == "cuda" and options.cuda_graphs:
             # its outputs are used by this thread's next kernels only: no copy of them
-            self.dense = GraphedPasses(torch, self.model.dense, copy_outputs=False)
+            self.dense = GraphedPasses(torch, self.model.dense, copy_outputs=False,
+                                       name="aliked")
         # one batch at a time from here to its copy back: a replay overwrites the graph's
         # outputs, which the batch before may not have queued all its kernels on yet
         self._lock = threading.Lock()
@@ -235,7 +236,8 @@ class TorchLightGlueMatcher:
         self.graphed = None
         if self.device.type == "cuda" and options.cuda_graphs:
             self.graphed = GraphedPasses(torch, self._network_pass,
-                                         lambda: self._precision(weight_cache=False))
+                                         lambda: self._precision(weight_cache=False),
+                                         name=name)
 
     def _network_pass(self, side0, side1, filled0: bool, filled1: bool) -> tuple:
         """The network and the mutual-best filter on a padded batch (``_launch``): one

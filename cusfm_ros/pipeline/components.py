@@ -136,11 +136,27 @@ def make_matcher(options: FeatureOptions, device: str = "auto"):
         return KnnMatcher(matcher.knn, device)
     learned = replace(matcher.selected, device=device)
     if options.use_torch(device):
-        from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
-
-        return TorchLightGlueMatcher(learned, matcher.name)
+        return _torch_matcher(learned, matcher.name)
     onnx = LighterGlueMatcher if matcher.name == "lighterglue" else LightGlueMatcher
     return onnx(ensure_models(options.model_dir), learned)
+
+
+_TORCH_MATCHERS: dict = {}
+_TORCH_MATCHERS_LOCK = threading.Lock()
+
+
+def _torch_matcher(options, name: str):
+    """One torch matcher per configuration and process, shared by the stages that match
+    (loops, pose graph, matching, localization): each built its own before, which loaded the
+    weights onto the GPU again (~0.35 s) and ran every pass shape uncaptured once and
+    captured it once more before the CUDA graphs replayed (``GraphedPasses``)."""
+    key = (name, options)
+    with _TORCH_MATCHERS_LOCK:
+        if key not in _TORCH_MATCHERS:
+            from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
+
+            _TORCH_MATCHERS[key] = TorchLightGlueMatcher(options, name)
+        return _TORCH_MATCHERS[key]
 
 
 class LazyMatcher:

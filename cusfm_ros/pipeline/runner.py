@@ -314,6 +314,7 @@ class StageRunner:
                 "inputs": context.input_digests, "external": payload["external"]}
         self._write_record(record_path, {**base, "status": "running"})
         _gpu_peak_mb(reset=True)
+        graphs_before = _graph_pass_counts()
         if beside is None:
             tick = time.perf_counter()
             counts = stage.run(context)
@@ -329,6 +330,8 @@ class StageRunner:
                  "counts": counts, "outputs": outputs}
         if (peak := _gpu_peak_mb()) is not None:
             entry["gpu_peak_mb"] = peak
+        if graphs := _graph_passes_since(graphs_before):
+            entry["cuda_graphs"] = graphs
         self._write_record(record_path, entry)
         logger.info("stage %s done in %.1f s: %s", stage.name, seconds, counts)
         return {**entry, "reused": False}
@@ -411,6 +414,25 @@ def _run_and_digest(stage: Stage, context: StageContext, digests: DigestCache
     for artifact in stage.outputs + stage.optional_outputs:
         digests.digest(getattr(context.run, artifact))
     return counts, seconds, digests.entries
+
+
+def _graph_pass_counts() -> dict:
+    """``models.graphed_passes.pass_counts()`` when a stage has loaded that module (it is
+    never imported here for it)."""
+    module = sys.modules.get("cusfm_ros.models.graphed_passes")
+    return module.pass_counts() if module is not None else {}
+
+
+def _graph_passes_since(before: dict) -> dict:
+    """The CUDA-graph passes of the stage that just ran, by network: eager, captured (and
+    the seconds that took), replayed."""
+    out = {}
+    for name, counts in _graph_pass_counts().items():
+        since = {key: round(value - before.get(name, {}).get(key, 0), 3)
+                 for key, value in counts.items()}
+        if since := {key: value for key, value in since.items() if value}:
+            out[name] = since
+    return out
 
 
 def _gpu_peak_mb(reset: bool = False) -> float | None:
