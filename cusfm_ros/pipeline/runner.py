@@ -372,6 +372,8 @@ class StageRunner:
                                                                                    True),
                                   **({"gpu_peak_mb": entry["gpu_peak_mb"]}
                                      if "gpu_peak_mb" in entry else {}),
+                                  **({"cuda_graphs": entry["cuda_graphs"]}
+                                     if "cuda_graphs" in entry else {}),
                                   **entry["counts"], "fingerprint": entry["fingerprint"],
                                   "options": entry["options"]}
         report = {**status, "steps": steps,
