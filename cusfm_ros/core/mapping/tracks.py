@@ -19,10 +19,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 
-PARALLEL_MIN_EDGES = 2_000_000
+PARALLEL_MIN_EDGES = 8_000_000
 """Below this many matches in inconsistent components, starting worker processes costs more
-than the rebuild saves: at 300 street frames of ALIKED (657k such matches) build_tracks took
-0.74 s in the stage's process and 1.3-2.0 s with 16 workers (H100 machine, 2026-12-06)."""
+than the rebuild saves (``bench/tracks.py`` on the H100 machine, street ALIKED, 2026-12-06):
+300 frames, 657k such matches: build_tracks 0.74 s in the stage's process, 1.3-2.0 s with
+16 workers; 1000 frames, 2.2M: 3.0 s against 3.7 s."""
 
 
 @dataclass
