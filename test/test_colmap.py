@@ -159,6 +159,40 @@ def test_failed_write_keeps_previous_model(tmp_path, rng):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sparse"]
 
 
+def test_images_text_written_on_a_worker_process_beside_the_callers_work(tmp_path, rng):
+    """The export's path: images.txt on a worker process (``start_images``) while the caller
+    writes the rest and its own files (``beside``); the same bytes as in one process. An
+    error on either side leaves the previous model and no temporary directory."""
+    from cusfm_ros.io.colmap.readwrite import write_images_text
+    from cusfm_ros.pipeline.parallel import worker_process
+
+    model = make_model(rng)
+    write_model(model, tmp_path / "here", "txt")
+    order = []
+    with worker_process((), 2) as start:
+        write_model(model, tmp_path / "there", "txt",
+                    start_images=lambda arguments: start(write_images_text, arguments),
+                    beside=lambda: order.append(sorted(
+                        p.name for p in tmp_path.glob(".there.*/*"))))
+    assert len(order) == 1 and {"cameras.txt", "points3D.txt"} <= set(order[0])
+    for name in ("cameras", "images", "points3D"):
+        assert (tmp_path / "there" / f"{name}.txt").read_bytes() == \
+            (tmp_path / "here" / f"{name}.txt").read_bytes()
+
+    def failing_images(arguments):
+        def wait():
+            raise OSError("disk full")
+        return wait
+
+    with pytest.raises(ValueError, match="the caller's own files"):
+        write_model(make_model(rng), tmp_path / "there", "txt",
+                    beside=lambda: (_ for _ in ()).throw(ValueError("the caller's own files")))
+    with pytest.raises(OSError, match="disk full"):
+        write_model(make_model(rng), tmp_path / "there", "txt", start_images=failing_images)
+    assert_models_equal(model, read_model(tmp_path / "there"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["here", "there"]
+
+
 @pytest.mark.parametrize("ext", ["txt", "bin"])
 def test_point_seen_in_unknown_image_is_named(tmp_path, rng, ext):
     model = make_model(rng)

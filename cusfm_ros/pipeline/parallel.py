@@ -227,6 +227,41 @@ def call_on_process(function: Callable[[Item], Result], argument: Item,
     return next(process_map(function, [argument], 2, minimum=1))[1]
 
 
+@contextlib.contextmanager
+def worker_process(modules: Iterable[str] = (), processes: int = 0
+                   ) -> Iterator[Callable[[Callable[[Item], Result], Item], Callable[[], Result]]]:
+    """``start(function, argument)``: ``function(argument)`` begun on a worker process from
+    the fork server, for work this process overlaps with its own (the COLMAP text export's
+    images.txt); ``start`` returns what waits for the result. Where ``call_on_process`` would
+    run here (one process allowed, or a server that has not imported ``modules``), ``start``
+    runs it at once. Leaving the block by an error cancels what has not begun and leaves a
+    running worker to end by itself (the caller's temporary output is removed under it)."""
+    if thread_count(processes) == 1 or not set(modules) <= _SERVER_MODULES:
+        def start_here(function: Callable[[Item], Result], argument: Item
+                       ) -> Callable[[], Result]:
+            result = function(argument)
+            return lambda: result
+
+        yield start_here
+        return
+    pools: list[ProcessPoolExecutor] = []
+
+    def start(function: Callable[[Item], Result], argument: Item) -> Callable[[], Result]:
+        pools.append(ProcessPoolExecutor(1, mp_context=_process_context(function),
+                                         initializer=_worker_process,
+                                         initargs=(os.getpid(),)))
+        return pools[-1].submit(function, argument).result
+
+    try:
+        yield start
+    except BaseException:
+        for pool in pools:
+            pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    for pool in pools:
+        pool.shutdown()
+
+
 def _process_context(function: Callable) -> multiprocessing.context.BaseContext:
     """Where the workers come from: forked from a fork server (a fresh interpreter, started
     once per run, that has imported the main module and ``function``'s module), else

@@ -29,6 +29,7 @@ from cusfm_ros.errors import CalibrationError, CusfmError
 from cusfm_ros.io.atomic import atomic_directory, atomic_write
 from cusfm_ros.io.colmap import (ColmapImage, ColmapPoint3D, ColmapReconstruction,
                                  camera_to_colmap, write_model)
+from cusfm_ros.io.colmap.readwrite import write_images_text
 from cusfm_ros.io.colmap.model import ColmapFrame, ColmapRig
 from cusfm_ros.io.colmap.cameras import COLMAP_PIXEL_OFFSET
 from cusfm_ros.io.extrinsics_yaml import Extrinsics, read_extrinsics
@@ -37,6 +38,7 @@ from cusfm_ros.io.map_points_file import read_map_points
 from cusfm_ros.io.ply import write_ply
 from cusfm_ros.io.results_bag import write_results_bag
 from cusfm_ros.io.tum import read_tum
+from cusfm_ros.pipeline.parallel import worker_process
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features
 
@@ -187,6 +189,7 @@ class ExportStage(Stage):
     outputs = ("initial_poses", "poses", "extrinsics", "points_ply", "results_bag", "exports")
     version = 3  # 3: sparse/ has COLMAP 4 rigs and frames; exports/
     optional_outputs = ("sparse",)
+    worker_modules = ("cusfm_ros.io.colmap.readwrite",)
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
@@ -199,19 +202,29 @@ class ExportStage(Stage):
         with open_features(run, options) as store:
             model = colmap_model(keyframes, read_tum(run.mapping_poses),
                                  read_extrinsics(run.mapping_extrinsics), points, rgb, store)
-        write_ply(run.points_ply, points.points3d_in_world, rgb)
         extrinsics = read_extrinsics(run.mapping_extrinsics)
-        write_results_bag(run.results_bag, read_tum(run.mapping_poses),
-                          read_tum(run.keyframe_initial_poses), points.points3d_in_world, rgb,
-                          extrinsics.base_frame_id,
-                          {n: (c.frame_id, c.rig_from_cam) for n, c in extrinsics.cameras.items()})
-        if model is not None:
-            # in this process: on worker processes the text took 1.5 s longer on the GPU
-            # machine (300 frames, 16 cores, 2026-12-05: 5.4 against 3.9 s for the stage)
-            write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt")
-        with atomic_directory(run.exports) as tmp:
-            write_exports(tmp, keyframes, read_tum(run.mapping_poses), extrinsics,
-                          run.keyframe_image, run.exports)
+
+        def the_other_files() -> None:
+            write_ply(run.points_ply, points.points3d_in_world, rgb)
+            write_results_bag(run.results_bag, read_tum(run.mapping_poses),
+                              read_tum(run.keyframe_initial_poses), points.points3d_in_world,
+                              rgb, extrinsics.base_frame_id,
+                              {n: (c.frame_id, c.rig_from_cam)
+                               for n, c in extrinsics.cameras.items()})
+            with atomic_directory(run.exports) as tmp:
+                write_exports(tmp, keyframes, read_tum(run.mapping_poses), extrinsics,
+                              run.keyframe_image, run.exports)
+
+        if model is None:
+            the_other_files()
+        else:
+            # images.txt (most of a text model's time) on one worker process while this one
+            # writes the rest of the model and the other files; lines formatted on 16
+            # workers and sent back had cost the GPU machine 1.5 s more than they saved
+            with worker_process(self.worker_modules, options.cpu_threads) as start:
+                write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt",
+                            start_images=lambda arguments: start(write_images_text, arguments),
+                            beside=the_other_files)
         _copy(run.keyframe_initial_poses, run.initial_poses)
         _copy(run.mapping_extrinsics, run.extrinsics)
         _copy(run.mapping_poses, run.poses)  # last: poses.tum means the export is complete
