@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import argparse
 import time
-from unittest import mock
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
