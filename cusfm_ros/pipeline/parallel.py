@@ -222,9 +222,15 @@ def call_on_process(function: Callable[[Item], Result], argument: Item,
     ``modules`` (``start_process_server``) and more than one process is allowed, else here:
     for work whose imports are the cost (the pose graph's gtsam, 1.4 s to import), which the
     server paid while earlier stages ran."""
-    if thread_count(processes) == 1 or not set(modules) <= _SERVER_MODULES:
+    if _runs_here(modules, processes):
         return function(argument)
     return next(process_map(function, [argument], 2, minimum=1))[1]
+
+
+def _runs_here(modules: Iterable[str], processes: int) -> bool:
+    """Work for one worker process runs in this one: one process allowed, or the fork server
+    has not imported ``modules`` (a worker would import them itself, the cost avoided)."""
+    return thread_count(processes) == 1 or not set(modules) <= _SERVER_MODULES
 
 
 @contextlib.contextmanager
@@ -236,7 +242,7 @@ def worker_process(modules: Iterable[str] = (), processes: int = 0
     run here (one process allowed, or a server that has not imported ``modules``), ``start``
     runs it at once. Leaving the block by an error cancels what has not begun and leaves a
     running worker to end by itself (the caller's temporary output is removed under it)."""
-    if thread_count(processes) == 1 or not set(modules) <= _SERVER_MODULES:
+    if _runs_here(modules, processes):
         def start_here(function: Callable[[Item], Result], argument: Item
                        ) -> Callable[[], Result]:
             result = function(argument)

@@ -238,8 +238,8 @@ def _write_images_here(arguments: tuple) -> Callable[[], None]:
 
 
 def _write_text(model: ColmapReconstruction, directory: Path,
-                start_images: Callable[[tuple], Callable[[], None]] = _write_images_here,
-                beside: Callable[[], None] | None = None) -> None:
+                start_images: Callable[[tuple], Callable[[], None]],
+                beside: Callable[[], None] | None) -> None:
     num_obs = sum(len(p.image_ids) for p in model.points3d.values())
     images_written = start_images((sorted(model.images.values(), key=lambda i: i.image_id),
                                    directory / "images.txt", num_obs))

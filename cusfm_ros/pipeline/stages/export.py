@@ -199,21 +199,20 @@ class ExportStage(Stage):
         keyframes = load_keyframes(run)
         points = read_map_points(run.mapping_points)
         rgb = (point_colours(run.keyframe_image, points) if options.export.rgb else None)
+        poses, extrinsics = read_tum(run.mapping_poses), read_extrinsics(run.mapping_extrinsics)
         with open_features(run, options) as store:
-            model = colmap_model(keyframes, read_tum(run.mapping_poses),
-                                 read_extrinsics(run.mapping_extrinsics), points, rgb, store)
-        extrinsics = read_extrinsics(run.mapping_extrinsics)
+            model = colmap_model(keyframes, poses, extrinsics, points, rgb, store)
 
         def the_other_files() -> None:
             write_ply(run.points_ply, points.points3d_in_world, rgb)
-            write_results_bag(run.results_bag, read_tum(run.mapping_poses),
+            write_results_bag(run.results_bag, poses,
                               read_tum(run.keyframe_initial_poses), points.points3d_in_world,
                               rgb, extrinsics.base_frame_id,
                               {n: (c.frame_id, c.rig_from_cam)
                                for n, c in extrinsics.cameras.items()})
             with atomic_directory(run.exports) as tmp:
-                write_exports(tmp, keyframes, read_tum(run.mapping_poses), extrinsics,
-                              run.keyframe_image, run.exports)
+                write_exports(tmp, keyframes, poses, extrinsics, run.keyframe_image,
+                              run.exports)
 
         if model is None:
             the_other_files()
