@@ -31,3 +31,25 @@ def test_a_folder_digest_covers_names_and_contents_in_order_and_skips_hidden(tmp
     (root / "left" / "2.png").write_bytes(b"B")
     os.utime(root / "left" / "2.png", ns=(1, 1))
     assert again.digest(root) != expected.hexdigest() and again._dirty
+
+
+def test_a_large_file_is_the_digest_of_its_pieces_digests(tmp_path, monkeypatch):
+    from cusfm_ros.io import digest
+
+    monkeypatch.setattr(digest, "PIECE_BYTES", 1000)
+    data = bytes(range(256)) * 10  # 2560 bytes: pieces of 1000, 1000 and 560
+    (tmp_path / "big").write_bytes(data)
+    (tmp_path / "small").write_bytes(data[:1000])
+    expected = hashlib.sha256()
+    for start in (0, 1000, 2000):
+        expected.update(hashlib.sha256(data[start:start + 1000]).hexdigest().encode() + b"\n")
+    assert file_digest(tmp_path / "big") == expected.hexdigest()
+    assert file_digest(tmp_path / "small") == hashlib.sha256(data[:1000]).hexdigest()
+    # a forked child hashes in pieces too (its parent's pool threads do not exist there)
+    read, write = os.pipe()
+    child = os.fork()
+    if child == 0:
+        os.write(write, file_digest(tmp_path / "big").encode())
+        os._exit(0)
+    os.waitpid(child, 0)
+    assert os.read(read, 100).decode() == expected.hexdigest()

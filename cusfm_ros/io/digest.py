@@ -1,25 +1,77 @@
 """Content digests of run-directory artifacts (files and directories), cached by size and
-modification time so an unchanged multi-gigabyte store is hashed once, not on every run."""
+modification time so an unchanged multi-gigabyte store is hashed once, not on every run.
+
+A file up to ``PIECE_BYTES`` is the sha256 of its bytes; a larger one the sha256 of its
+pieces' sha256 digests, the pieces hashed on several threads. sha256 is sequential and
+runs at ~1.1 GB/s: the feature store of 1000 ALIKED stereo frames (~2 GB) cost ~1.8 s
+between two stages, on no stage's clock; in pieces it takes a fraction of that on as many
+cores (hashlib releases the GIL on large buffers; no library hashes one file in
+parallel with the same result).
+"""
 
 from __future__ import annotations
 
 import hashlib
 import json
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from cusfm_ros.io.atomic import atomic_write
 
 _CHUNK = 1 << 20
+PIECE_BYTES = 64 << 20
+_PIECE_THREADS = 8
+_pieces_pool: ThreadPoolExecutor | None = None
+_pieces_lock = threading.Lock()
+
+
+def _sha256(handle, offset: int, size: int) -> str:
+    digest = hashlib.sha256()
+    end = offset + size
+    while offset < end:
+        chunk = os.pread(handle, min(_CHUNK, end - offset), offset)
+        if not chunk:
+            break
+        digest.update(chunk)
+        offset += len(chunk)
+    return digest.hexdigest()
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _pieces_pool
+    with _pieces_lock:
+        if _pieces_pool is None:  # one per process, its threads started as pieces come
+            _pieces_pool = ThreadPoolExecutor(min(_PIECE_THREADS, os.cpu_count() or 1),
+                                              thread_name_prefix="digest")
+        return _pieces_pool
+
+
+def _forget_pool() -> None:  # a forked child has none of its parent's threads
+    global _pieces_pool, _pieces_lock
+    _pieces_pool, _pieces_lock = None, threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pool)
 
 
 def file_digest(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
+    """sha256 of the bytes of a file up to ``PIECE_BYTES``; of a larger file, sha256 over
+    the hex sha256 of each ``PIECE_BYTES`` piece in order, each followed by a newline."""
+    handle = os.open(path, os.O_RDONLY)
+    try:
+        size = os.fstat(handle).st_size
+        if size <= PIECE_BYTES:
+            return _sha256(handle, 0, size)
+        offsets = range(0, size, PIECE_BYTES)
+        pieces = _pool().map(lambda offset: _sha256(handle, offset, PIECE_BYTES), offsets)
+        digest = hashlib.sha256()
+        for piece in pieces:
+            digest.update(piece.encode() + b"\n")
+        return digest.hexdigest()
+    finally:
+        os.close(handle)
 
 
 class DigestCache:
