@@ -1,3 +1,5 @@
+import struct
+
 import numpy as np
 import pytest
 
@@ -6,6 +8,7 @@ from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.errors import CalibrationError, FormatError
 from cusfm_ros.io.colmap import (ColmapImage, ColmapPoint3D, ColmapReconstruction,
                                  camera_from_colmap, camera_to_colmap, read_model, write_model)
+from cusfm_ros.io.colmap.model import PointTable
 
 # a test requirement (requirements.txt); a machine without it (the GPU machine) skips these
 pycolmap = pytest.importorskip("pycolmap")
@@ -159,27 +162,28 @@ def test_failed_write_keeps_previous_model(tmp_path, rng):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sparse"]
 
 
-def test_images_text_written_on_a_worker_process_beside_the_callers_work(tmp_path, rng):
-    """The export's path: images.txt on a worker process (``start_images``) while the caller
-    writes the rest and its own files (``beside``); the same bytes as in one process. An
-    error on either side leaves the previous model and no temporary directory."""
-    from cusfm_ros.io.colmap.readwrite import write_images_text
-    from cusfm_ros.pipeline.parallel import worker_process
+def test_text_written_in_parts_on_worker_processes_beside_the_callers_work(tmp_path, rng):
+    """The export's path: images.txt and points3D.txt in parts on worker processes
+    (``start``) while the caller writes the rest and its own files (``beside``); the same
+    bytes as in one process, from a dict of points or a ``PointTable``. An error on either
+    side leaves the previous model and no temporary directory."""
+    from cusfm_ros.pipeline.parallel import worker_processes
 
-    model = make_model(rng)
+    model = make_model(rng, num_images=7, num_points=60)
     write_model(model, tmp_path / "here", "txt")
     order = []
-    with worker_process((), 2) as start:
-        write_model(model, tmp_path / "there", "txt",
-                    start_images=lambda arguments: start(write_images_text, arguments),
+    as_table = ColmapReconstruction(model.cameras, model.images,
+                                    PointTable.from_points(model.points3d.values()))
+    with worker_processes((), 2) as start:
+        write_model(as_table, tmp_path / "there", "txt", start=start, parts=3,
                     beside=lambda: order.append(sorted(
                         p.name for p in tmp_path.glob(".there.*/*"))))
-    assert len(order) == 1 and {"cameras.txt", "points3D.txt"} <= set(order[0])
+    assert order == [["cameras.txt"]]  # images and points come after the caller's work
     for name in ("cameras", "images", "points3D"):
         assert (tmp_path / "there" / f"{name}.txt").read_bytes() == \
             (tmp_path / "here" / f"{name}.txt").read_bytes()
 
-    def failing_images(arguments):
+    def failing(function, argument):
         def wait():
             raise OSError("disk full")
         return wait
@@ -188,9 +192,45 @@ def test_images_text_written_on_a_worker_process_beside_the_callers_work(tmp_pat
         write_model(make_model(rng), tmp_path / "there", "txt",
                     beside=lambda: (_ for _ in ()).throw(ValueError("the caller's own files")))
     with pytest.raises(OSError, match="disk full"):
-        write_model(make_model(rng), tmp_path / "there", "txt", start_images=failing_images)
+        write_model(make_model(rng), tmp_path / "there", "txt", start=failing, parts=2)
     assert_models_equal(model, read_model(tmp_path / "there"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["here", "there"]
+
+
+def test_point_table_is_the_points_as_columns(rng, tmp_path):
+    """A ``PointTable`` answers as the dict of points it was made from (ids in order,
+    each point's fields and track); its binary file is the same bytes as the dict's; rows
+    and bad columns."""
+    model = make_model(rng)
+    table = PointTable.from_points(model.points3d.values())
+    assert list(table) == sorted(model.points3d) and len(table) == len(model.points3d)
+    for point_id, point in model.points3d.items():
+        got = table[point_id]
+        assert point_id in table and got.point3d_id == point_id
+        np.testing.assert_array_equal(got.xyz, point.xyz)
+        np.testing.assert_array_equal(got.rgb, point.rgb)
+        assert got.error == point.error
+        np.testing.assert_array_equal(got.image_ids, point.image_ids)
+        np.testing.assert_array_equal(got.point2d_idxs, point.point2d_idxs)
+    assert 0 not in table and "x" not in table and [1] not in table
+    with pytest.raises(KeyError):
+        table[0]
+    part = table.rows(3, 7)
+    assert list(part) == list(table)[3:7]
+    np.testing.assert_array_equal(part[list(part)[0]].image_ids, table[list(part)[0]].image_ids)
+    # COLMAP's layout, point by point: the count, then each record and its track
+    expected = struct.pack("<Q", len(model.points3d)) + b"".join(
+        struct.pack("<Q3d3BdQ", p.point3d_id, *p.xyz, *p.rgb, p.error, len(p.image_ids))
+        + b"".join(struct.pack("<II", i, k) for i, k in zip(p.image_ids, p.point2d_idxs))
+        for p in sorted(model.points3d.values(), key=lambda p: p.point3d_id))
+    for points in (model.points3d, table):
+        write_model(ColmapReconstruction(model.cameras, model.images, points),
+                    tmp_path / "bin", "bin")
+        assert (tmp_path / "bin" / "points3D.bin").read_bytes() == expected
+    with pytest.raises(ValueError, match="ascending"):
+        PointTable([2, 1], np.zeros((2, 3)), np.zeros((2, 3)), np.zeros(2), [0, 0, 0], [], [])
+    with pytest.raises(ValueError, match="track_starts"):
+        PointTable([1], np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1), [0, 2], [1], [1])
 
 
 @pytest.mark.parametrize("ext", ["txt", "bin"])

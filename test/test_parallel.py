@@ -12,7 +12,7 @@ import pytest
 
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.pipeline.parallel import (GIL_SWITCH_INTERVAL_S, chunks, ordered_map, process_map,
-                                        short_gil_switch, thread_count, worker_process)
+                                        short_gil_switch, thread_count, worker_processes)
 
 
 def test_ordered_map_keeps_the_order_on_any_thread_count():
@@ -46,17 +46,17 @@ def test_thread_pools_hand_the_gil_over_sooner_while_they_run():
 
 
 def test_work_started_on_a_worker_process_while_this_one_goes_on():
-    """``worker_process``: the work runs on another process (its pid) and its result comes
+    """``worker_processes``: the work runs on another process (its pid) and its result comes
     when asked; with one process allowed, or modules the server has not imported, it runs
     here at once."""
     here = str(os.getpid())
-    with worker_process((), 2) as start:
+    with worker_processes((), 2) as start:
         wait = start(os.readlink, "/proc/self")  # the calling process's pid
         assert wait() != here
         assert start(math.factorial, 10)() == 3628800
-    with worker_process((), 1) as start:
+    with worker_processes((), 1) as start:
         assert start(os.readlink, "/proc/self")() == here
-    with worker_process(["a.module.no.server.imported"], 2) as start:
+    with worker_processes(["a.module.no.server.imported"], 2) as start:
         assert start(os.readlink, "/proc/self")() == here
 
 

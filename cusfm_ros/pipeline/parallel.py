@@ -234,14 +234,15 @@ def _runs_here(modules: Iterable[str], processes: int) -> bool:
 
 
 @contextlib.contextmanager
-def worker_process(modules: Iterable[str] = (), processes: int = 0
+def worker_processes(modules: Iterable[str] = (), processes: int = 0
                    ) -> Iterator[Callable[[Callable[[Item], Result], Item], Callable[[], Result]]]:
     """``start(function, argument)``: ``function(argument)`` begun on a worker process from
-    the fork server, for work this process overlaps with its own (the COLMAP text export's
-    images.txt); ``start`` returns what waits for the result. Where ``call_on_process`` would
-    run here (one process allowed, or a server that has not imported ``modules``), ``start``
-    runs it at once. Leaving the block by an error cancels what has not begun and leaves a
-    running worker to end by itself (the caller's temporary output is removed under it)."""
+    the fork server (up to ``processes`` at once, the rest queued), for work this process
+    overlaps with its own (the COLMAP text export's parts); ``start`` returns what waits
+    for the result. Where ``call_on_process`` would run here (one process allowed, or a
+    server that has not imported ``modules``), ``start`` runs it at once. Leaving the block
+    by an error cancels what has not begun and leaves running workers to end by themselves
+    (the caller's temporary output is removed under them)."""
     if _runs_here(modules, processes):
         def start_here(function: Callable[[Item], Result], argument: Item
                        ) -> Callable[[], Result]:
@@ -253,10 +254,12 @@ def worker_process(modules: Iterable[str] = (), processes: int = 0
     pools: list[ProcessPoolExecutor] = []
 
     def start(function: Callable[[Item], Result], argument: Item) -> Callable[[], Result]:
-        pools.append(ProcessPoolExecutor(1, mp_context=_process_context(function),
-                                         initializer=_worker_process,
-                                         initargs=(os.getpid(),)))
-        return pools[-1].submit(function, argument).result
+        if not pools:  # its workers start as work comes, up to ``processes``
+            pools.append(ProcessPoolExecutor(thread_count(processes),
+                                             mp_context=_process_context(function),
+                                             initializer=_worker_process,
+                                             initargs=(os.getpid(),)))
+        return pools[0].submit(function, argument).result
 
     try:
         yield start

@@ -27,10 +27,9 @@ from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import CalibrationError, CusfmError
 from cusfm_ros.io.atomic import atomic_directory, atomic_write
-from cusfm_ros.io.colmap import (ColmapImage, ColmapPoint3D, ColmapReconstruction,
-                                 camera_to_colmap, write_model)
-from cusfm_ros.io.colmap.readwrite import write_images_text
-from cusfm_ros.io.colmap.model import ColmapFrame, ColmapRig
+from cusfm_ros.io.colmap import (ColmapImage, ColmapReconstruction, camera_to_colmap,
+                                 write_model)
+from cusfm_ros.io.colmap.model import ColmapFrame, ColmapRig, PointTable
 from cusfm_ros.io.colmap.cameras import COLMAP_PIXEL_OFFSET
 from cusfm_ros.io.extrinsics_yaml import Extrinsics, read_extrinsics
 from cusfm_ros.io.feature_store import FeatureStore
@@ -38,7 +37,7 @@ from cusfm_ros.io.map_points_file import read_map_points
 from cusfm_ros.io.ply import write_ply
 from cusfm_ros.io.results_bag import write_results_bag
 from cusfm_ros.io.tum import read_tum
-from cusfm_ros.pipeline.parallel import worker_process
+from cusfm_ros.pipeline.parallel import thread_count, worker_processes
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features
 
@@ -121,13 +120,10 @@ def colmap_model(keyframes: KeyframeSet, world_from_rig: Trajectory, extrinsics:
     counts = np.bincount(points.obs_point, weights=np.isfinite(points.obs_error_px),
                          minlength=len(points))
     mean_error = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
-    grey = np.full(3, 128, np.uint8)
-    xyz = points.points3d_in_world
-    for p in range(len(points)):
-        members = order[starts[p]:starts[p + 1]]
-        model.points3d[int(point_ids[p])] = ColmapPoint3D(
-            int(point_ids[p]), xyz[p], rgb[p] if rgb is not None else grey,
-            float(mean_error[p]), image_of_obs[members], points.obs_keypoint[members])
+    model.points3d = PointTable(point_ids, points.points3d_in_world,
+                                rgb if rgb is not None else np.full((len(points), 3), 128),
+                                mean_error, starts, image_of_obs[order],
+                                points.obs_keypoint[order])
     return model
 
 
@@ -181,6 +177,12 @@ def write_exports(directory: Path, keyframes: KeyframeSet, world_from_rig: Traje
     return written
 
 
+def text_parts(cpu_threads: int) -> int:
+    """Parts of images.txt and of points3D.txt, each on its own worker process: up to 8
+    of each, one core left to this process's own files."""
+    return max(1, min(8, thread_count(cpu_threads) - 1))
+
+
 class ExportStage(Stage):
     name = "export"
     sections = {"export": ExportOptions}
@@ -217,12 +219,11 @@ class ExportStage(Stage):
         if model is None:
             the_other_files()
         else:
-            # images.txt (most of a text model's time) on one worker process while this one
-            # writes the rest of the model and the other files; lines formatted on 16
-            # workers and sent back had cost the GPU machine 1.5 s more than they saved
-            with worker_process(self.worker_modules, options.cpu_threads) as start:
+            # a text model's images.txt and points3D.txt (most of its time) in parts on
+            # worker processes while this one writes the rest and the other files
+            with worker_processes(self.worker_modules, options.cpu_threads) as start:
                 write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt",
-                            start_images=lambda arguments: start(write_images_text, arguments),
+                            start=start, parts=text_parts(options.cpu_threads),
                             beside=the_other_files)
         _copy(run.keyframe_initial_poses, run.initial_poses)
         _copy(run.mapping_extrinsics, run.extrinsics)
