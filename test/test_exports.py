@@ -168,6 +168,17 @@ def test_map_points_file_round_trips_stores_image_indices_and_reads_the_old_layo
     back = read_map_points(tmp_path / "points.npz")
     for key in KEYS:
         np.testing.assert_array_equal(getattr(back, key), getattr(points, key))
+    # the codes read from the file are factorize's, as are the lookups through them
+    for ours, numpy in zip(back.image_codes(), np.unique(names, return_inverse=True)):
+        np.testing.assert_array_equal(ours, numpy)
+    np.testing.assert_array_equal(back.image_lookup(index), lookup(names, index))
+    given = MapPoints(*(getattr(points, k) for k in KEYS))
+    given.set_image_codes(np.array(["front_stereo_left/9.png", "front_stereo_left/17.png",
+                                    "front_stereo_right/17.png"]),
+                          np.array([{"front_stereo_left/9.png": 0, "front_stereo_left/17.png": 1,
+                                     "front_stereo_right/17.png": 2}[n] for n in names]))
+    assert {k: v.tolist() for k, v in given.observations_by_image().items()} == \
+        {k: v.tolist() for k, v in points.observations_by_image().items()}
     # files written before 2026-12-05 hold the names per observation
     np.savez_compressed(tmp_path / "old.npz", **{k: getattr(points, k) for k in KEYS})
     np.testing.assert_array_equal(read_map_points(tmp_path / "old.npz").obs_image, names)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cusfm_ros.core.mapping.map_points import MapPoints, factorize
+from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.errors import FormatError
 
 KEYS = ("points3d_in_world", "obs_point", "obs_image", "obs_keypoint", "obs_uv_px",
@@ -21,7 +21,7 @@ KEYS = ("points3d_in_world", "obs_point", "obs_image", "obs_keypoint", "obs_uv_p
 
 def write_map_points(path: str | os.PathLike, points: MapPoints) -> None:
     """Written in place: callers put it inside an atomic directory (see the mapping stage)."""
-    names, index = factorize(points.obs_image)
+    names, index = points.image_codes()
     arrays = {k: getattr(points, k) for k in KEYS if k != "obs_image"}
     with open(path, "wb") as handle:
         np.savez(handle, image_names=names, obs_image_index=index.astype(np.int32), **arrays)
@@ -42,7 +42,12 @@ def read_map_points(path: str | os.PathLike) -> MapPoints:
             raise FormatError(path, None, "an observation names an image that is not listed",
                               "rerun the mapping stage")
         arrays["obs_image"] = names[index]
+    else:
+        names = index = None
     missing = [k for k in KEYS if k not in arrays]
     if missing:
         raise FormatError(path, None, f"missing arrays {missing}", "rerun the mapping stage")
-    return MapPoints(**{k: arrays[k] for k in KEYS})
+    points = MapPoints(**{k: arrays[k] for k in KEYS})
+    if names is not None:
+        points.set_image_codes(names, index)
+    return points

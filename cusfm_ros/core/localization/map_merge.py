@@ -11,7 +11,7 @@ import numpy as np
 from cusfm_ros.core.features.types import Matches
 from cusfm_ros.core.geometry import Rigid3, umeyama_pose_alignment
 from cusfm_ros.core.localization.prior_map import PriorMap
-from cusfm_ros.core.mapping.map_points import MapPoints, lookup
+from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.errors import MappingError
 
 
@@ -92,7 +92,7 @@ def merge_fixed_points(prior_map: PriorMap, refined: MapPoints) -> tuple[MapPoin
     not touched); the others are new points."""
     old = old_map_points(prior_map)
     index = {k.image_name: i for i, k in enumerate(prior_map.keyframes.keyframes)}
-    keyframe_of_obs = lookup(refined.obs_image, index)
+    keyframe_of_obs = refined.image_lookup(index)
     is_old = keyframe_of_obs >= 0
     old_id = np.full(len(refined.obs_point), -1, np.int64)
     if is_old.any():

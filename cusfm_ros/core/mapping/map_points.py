@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -26,7 +26,11 @@ def factorize(strings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def lookup(strings: np.ndarray, index: dict[str, int], missing: int = -1) -> np.ndarray:
     """``index[s]`` of each row (``missing`` where absent), looked up once per distinct value
     (``factorize``) rather than once per row."""
-    names, row_of = factorize(strings)
+    return _lookup_codes(*factorize(strings), index, missing)
+
+
+def _lookup_codes(names: np.ndarray, row_of: np.ndarray, index: dict[str, int],
+                  missing: int) -> np.ndarray:
     return np.array([index.get(n, missing) for n in names.tolist()], np.int64)[row_of]
 
 
@@ -42,6 +46,8 @@ class MapPoints:
     obs_keypoint: np.ndarray
     obs_uv_px: np.ndarray
     obs_error_px: np.ndarray
+    _codes: tuple[np.ndarray, np.ndarray] | None = field(init=False, repr=False,
+                                                         compare=False, default=None)
 
     def __post_init__(self) -> None:
         self.points3d_in_world = np.asarray(self.points3d_in_world, np.float64).reshape(-1, 3)
@@ -64,10 +70,28 @@ class MapPoints:
     def num_observations(self) -> int:
         return len(self.obs_point)
 
+    def image_codes(self) -> tuple[np.ndarray, np.ndarray]:
+        """``factorize(obs_image)``: the sorted distinct image names and each observation's
+        index into them, computed once (``read_map_points`` gives the file's: one name per
+        observation went through Python once per reader)."""
+        if self._codes is None:
+            self._codes = factorize(self.obs_image)
+        return self._codes
+
+    def set_image_codes(self, names: np.ndarray, image_of_row: np.ndarray) -> None:
+        """``image_codes`` as known (the file's): ``names[image_of_row]`` must be
+        ``obs_image``; they are sorted and made distinct here."""
+        distinct, rank = np.unique(np.asarray(names, str), return_inverse=True)
+        self._codes = distinct, rank.reshape(-1)[np.asarray(image_of_row, np.int64)]
+
+    def image_lookup(self, index: dict[str, int], missing: int = -1) -> np.ndarray:
+        """``lookup(obs_image, index)`` through ``image_codes``."""
+        return _lookup_codes(*self.image_codes(), index, missing)
+
     def observations_by_image(self) -> dict[str, np.ndarray]:
         """Image name -> the rows of its observations (in row order), grouped in one sort
         rather than one comparison of every row per image (quadratic in the map's size)."""
-        names, image_of_row = factorize(self.obs_image)
+        names, image_of_row = self.image_codes()
         order = np.argsort(image_of_row, kind="stable")
         bounds = np.searchsorted(image_of_row[order], np.arange(len(names) + 1))
         return {str(name): order[bounds[i]:bounds[i + 1]] for i, name in enumerate(names)}

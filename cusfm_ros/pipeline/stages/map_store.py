@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.localization.prior_map import PriorMap
-from cusfm_ros.core.mapping.map_points import MapPoints, lookup
+from cusfm_ros.core.mapping.map_points import MapPoints
 from cusfm_ros.core.retrieval.database import ImageDatabase
 from cusfm_ros.core.retrieval.vocabulary import QUANTIZE_BATCH, VocabularyTree
 from cusfm_ros.core.trajectory import Trajectory
@@ -83,7 +83,7 @@ def build_prior_map(keyframes: KeyframeSet, world_from_rig: Trajectory, points: 
     points)."""
     names = [k.image_name for k in keyframes.keyframes]
     index = {n: i for i, n in enumerate(names)}
-    obs_keyframe = lookup(points.obs_image, index)
+    obs_keyframe = points.image_lookup(index)
     if (obs_keyframe < 0).any():
         unknown = set(points.obs_image[obs_keyframe < 0].tolist())
         raise CusfmError(f"map points observed in images that are not keyframes "
