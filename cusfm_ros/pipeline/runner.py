@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from cusfm_ros import __version__
-from cusfm_ros.core.accelerator import check_device, cuda_torch
+from cusfm_ros.core.accelerator import check_device, cuda_torch, nvidia_gpu_present
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.digest import DigestCache
@@ -159,12 +159,6 @@ def _load_native_runtimes() -> None:
         pass
 
 
-def _nvidia_gpu_present() -> bool:
-    """The NVIDIA driver lists a GPU (no CUDA library is loaded to ask)."""
-    gpus = Path("/proc/driver/nvidia/gpus")
-    return Path("/dev/nvidia0").exists() or (gpus.is_dir() and any(gpus.iterdir()))
-
-
 class StageRunner:
     """Runs the registered stages named in ``steps`` on one run directory."""
 
@@ -272,7 +266,7 @@ class StageRunner:
                 or thread_count(getattr(self.options, "cpu_threads", 0)) < 2
                 or importlib.util.find_spec("torch") is None):
             return False
-        return device != "cuda" or _nvidia_gpu_present()
+        return device != "cuda" or nvidia_gpu_present()
 
     def _run_stage(self, stage: Stage, run: RunDir, bag, digests: DigestCache,
                    overwrite: bool, beside: Callable[[], None] | None = None) -> dict:
