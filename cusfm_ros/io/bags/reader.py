@@ -109,6 +109,15 @@ class BagReader:
                            f"messages ({type(exc).__name__}: {exc}); re-record or repair it "
                            "(`ros2 bag reindex` for rosbag2)") from None
 
+    def indexed_header_stamps(self, topics: Iterable[str]) -> dict[str, list[int]] | None:
+        """Header stamps of every message on ``topics`` (per topic, in ``messages`` order)
+        read from an MCAP bag's indexes, no message read (``mcap_stamps``); None where the
+        bag cannot give them so (``messages`` then)."""
+        from cusfm_ros.io.bags.mcap_stamps import header_stamps, storage_files
+
+        files = storage_files(self.path) if self.is_ros2 else None
+        return None if files is None else header_stamps(files, topics)
+
     def deserialize(self, message: RawMessage) -> Any:
         try:
             return self._reader.deserialize(message.raw, message.msgtype)

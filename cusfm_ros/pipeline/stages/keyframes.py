@@ -253,6 +253,14 @@ class KeyframeExtractor:
         stamps: dict[str, list[int]] = {c.name: [] for c in layout.cameras}
         odom_stamps, odom_poses, odom_frames = [], [], None
         num_images = 0
+        # the images' header stamps from an MCAP bag's indexes when it has them (no image
+        # read here: the second pass reads the keyframes'), else from the messages below
+        indexed = bag.indexed_header_stamps(image_topics)
+        if indexed is not None:
+            wanted -= set(image_topics)
+            for topic, series in indexed.items():
+                stamps[image_topics[topic].name] += series
+                num_images += len(series)
         for message in bag.messages(wanted):
             topic = message.topic
             if topic in image_topics:
