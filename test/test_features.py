@@ -774,6 +774,31 @@ def test_lightglue_passes_replayed_as_cuda_graphs_give_the_matches_of_uncaptured
             np.testing.assert_allclose(other.confidences, matches.confidences, atol=1e-4)
 
 
+@pytest.mark.gpu
+def test_lightglue_graphs_pad_both_sides_to_one_size(motorcycle):
+    """Passes whose larger images are on different sides are one shape (both sides padded
+    to the ``graph_side`` of the largest image), captured once; the matches are those of
+    the matcher without graphs."""
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    from cusfm_ros.core.features.lightglue import LightGlueOptions
+    from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
+
+    f0, f1 = _motorcycle_on_cuda(motorcycle)
+    pairs = [(_first(f0, 2000), _first(f1, 1100)), (_first(f0, 1500), _first(f1, 1000)),
+             (_first(f0, 1100), _first(f1, 1990)), (_first(f0, 1000), _first(f1, 1600))]
+    options = dict(device="cuda", batch_pairs=2, half_precision=False)
+    graphed = TorchLightGlueMatcher(LightGlueOptions(**options))
+    runs = [graphed.match_many(pairs) for _ in range(2)]
+    assert len(graphed.graphed) == 1 and graphed.graphed.replays == 3  # 1 eager pass
+    reference = TorchLightGlueMatcher(LightGlueOptions(**options, cuda_graphs=False)
+                                      ).match_many(pairs)
+    for run in runs:
+        for got, want in zip(run, reference):
+            np.testing.assert_array_equal(got.indices, want.indices)
+            np.testing.assert_allclose(got.confidences, want.confidences, atol=1e-4)
+
+
 def test_half_precision_lightglue_keeps_its_positional_encoding_and_assignment_in_fp32():
     """Under autocast only the transformer layers run in half precision: the positional
     encoding and the match assignment give exactly their fp32 values (in fp16 the encoding's

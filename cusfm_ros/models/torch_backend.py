@@ -411,19 +411,22 @@ class TorchLightGlueMatcher:
 
     def _launch(self, pairs: list[tuple[Features, Features]]) -> tuple:
         """One pass over pairs padded to the largest side of each image (rounded up to
-        ``pad_multiple``, and to ``graph_side`` where passes are replayed as CUDA graphs:
-        ``GraphedPasses``), the padded rows marking the real points (``DeviceFeatures``;
-        ``LightGlueNet.forward`` masks them, except on a side every pair fills); the
-        mutual-best filter runs on the device and only each point's partner, confidence and
-        validity come back, as one tensor copied to pinned host memory behind the pass (an
-        event marks its arrival). ``_collect`` turns it into matches. The thread that feeds
-        the GPU makes a dozen torch calls per pass here (where it made ~25, each a wait for
-        the GIL while the verification threads run)."""
+        ``pad_multiple``; where passes are replayed as CUDA graphs, ``GraphedPasses``, both
+        sides to the ``graph_side`` of the largest image), the padded rows marking the real
+        points (``DeviceFeatures``; ``LightGlueNet.forward`` masks them, except on a side
+        every pair fills); the mutual-best filter runs on the device and only each point's
+        partner, confidence and validity come back, as one tensor copied to pinned host
+        memory behind the pass (an event marks its arrival). ``_collect`` turns it into
+        matches. The thread that feeds the GPU makes a dozen torch calls per pass here (where
+        it made ~25, each a wait for the GIL while the verification threads run)."""
         torch = self.torch
         counts = np.array([(len(a), len(b)) for a, b in pairs])
         multiple = self.options.pad_multiple
-        if self.graphed is not None:  # few sizes, so that each is captured once
-            size = np.array([graph_side(int(n), multiple) for n in counts.max(0)])
+        if self.graphed is not None:
+            # few shapes, so that each is captured once and replayed often: both sides padded
+            # to one size (the street's loop passes took 16 shapes, each first pass launched
+            # eagerly and the second captured, for 72 passes at 300 frames)
+            size = np.full(2, graph_side(int(counts.max()), multiple))
         else:
             size = -(-counts.max(0) // multiple) * multiple
         # a side every pair fills needs no mask (the flash kernel takes none)

@@ -48,8 +48,9 @@ class LightGlueOptions:
     cuda_graphs: bool = True
     """The torch backend on a GPU replays each pass shape it has run before as a CUDA graph
     (all of a pass's ~400 kernels in one launch, where Python launched them one by one) and
-    pads sides to a few sizes for it (``graphed_passes.graph_side``: at most 1/8 more points,
-    masked); elsewhere, and with ``depth_confidence``, it has no effect."""
+    pads both sides of a pass to one of a few sizes for it (``graphed_passes.graph_side`` of
+    its largest image: at most 1/8 more points than that, masked); elsewhere, and with
+    ``depth_confidence``, it has no effect."""
     device: str = "auto"
     threads: int = 0
 
