@@ -36,6 +36,7 @@ from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.map_points_file import read_map_points
 from cusfm_ros.io.ply import write_ply
 from cusfm_ros.io.results_bag import write_results_bag
+from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.io.tum import read_tum
 from cusfm_ros.pipeline.parallel import thread_count, worker_processes
 from cusfm_ros.pipeline.stage import Stage, StageContext
@@ -177,6 +178,20 @@ def write_exports(directory: Path, keyframes: KeyframeSet, world_from_rig: Traje
     return written
 
 
+def write_other_files(arguments: tuple) -> None:
+    """``points.ply``, ``results.mcap`` and ``exports/`` of (run directory, keyframes,
+    refined poses, extrinsics, points, colours or None): module-level and one argument, for
+    a worker process."""
+    root, keyframes, poses, extrinsics, points_m, rgb = arguments
+    run = RunDir(root)
+    write_ply(run.points_ply, points_m, rgb)
+    write_results_bag(run.results_bag, poses, read_tum(run.keyframe_initial_poses), points_m,
+                      rgb, extrinsics.base_frame_id,
+                      {n: (c.frame_id, c.rig_from_cam) for n, c in extrinsics.cameras.items()})
+    with atomic_directory(run.exports) as tmp:
+        write_exports(tmp, keyframes, poses, extrinsics, run.keyframe_image, run.exports)
+
+
 def text_parts(cpu_threads: int) -> int:
     """Parts of images.txt and of points3D.txt, each on its own worker process: up to 8
     of each, one core left to this process's own files."""
@@ -191,7 +206,7 @@ class ExportStage(Stage):
     outputs = ("initial_poses", "poses", "extrinsics", "points_ply", "results_bag", "exports")
     version = 3  # 3: sparse/ has COLMAP 4 rigs and frames; exports/
     optional_outputs = ("sparse",)
-    worker_modules = ("cusfm_ros.io.colmap.readwrite",)
+    worker_modules = (__name__, "cusfm_ros.io.colmap.readwrite")
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
@@ -202,29 +217,20 @@ class ExportStage(Stage):
         points = read_map_points(run.mapping_points)
         rgb = (point_colours(run.keyframe_image, points) if options.export.rgb else None)
         poses, extrinsics = read_tum(run.mapping_poses), read_extrinsics(run.mapping_extrinsics)
-        with open_features(run, options) as store:
-            model = colmap_model(keyframes, poses, extrinsics, points, rgb, store)
-
-        def the_other_files() -> None:
-            write_ply(run.points_ply, points.points3d_in_world, rgb)
-            write_results_bag(run.results_bag, poses,
-                              read_tum(run.keyframe_initial_poses), points.points3d_in_world,
-                              rgb, extrinsics.base_frame_id,
-                              {n: (c.frame_id, c.rig_from_cam)
-                               for n, c in extrinsics.cameras.items()})
-            with atomic_directory(run.exports) as tmp:
-                write_exports(tmp, keyframes, poses, extrinsics, run.keyframe_image,
-                              run.exports)
-
-        if model is None:
-            the_other_files()
-        else:
-            # a text model's images.txt and points3D.txt (most of its time) in parts on
-            # worker processes while this one writes the rest and the other files
-            with worker_processes(self.worker_modules, options.cpu_threads) as start:
+        with worker_processes(self.worker_modules, options.cpu_threads) as start:
+            # points.ply, results.mcap and exports/ on a worker process while this one
+            # builds the COLMAP model, whose images.txt and points3D.txt (most of a text
+            # model's time) are written in parts on more of them
+            other_files = start(write_other_files, (run.root, keyframes, poses, extrinsics,
+                                                    points.points3d_in_world, rgb))
+            with open_features(run, options) as store:
+                model = colmap_model(keyframes, poses, extrinsics, points, rgb, store)
+            if model is None:
+                other_files()
+            else:
                 write_model(model, run.sparse, "bin" if options.export.colmap_binary else "txt",
                             start=start, parts=text_parts(options.cpu_threads),
-                            beside=the_other_files)
+                            beside=other_files)
         _copy(run.keyframe_initial_poses, run.initial_poses)
         _copy(run.mapping_extrinsics, run.extrinsics)
         _copy(run.mapping_poses, run.poses)  # last: poses.tum means the export is complete
