@@ -74,6 +74,36 @@ def test_figures_drawn_on_worker_processes_are_the_same_page(mapped, tmp_path):
     assert drawn == [len(FIGURES)]
 
 
+def test_result_figures_drawn_ahead_on_workers_make_the_same_page(mapped, tmp_path):
+    """The mapper's path: the exported results' figures drawn on worker processes while the
+    map stage runs (``draw_result_figures``, in parts), the report's own figures (stage
+    times) at the end: the same page byte for byte; a figure missing from them is drawn."""
+    from cusfm_ros.pipeline.parallel import worker_processes
+    from cusfm_ros.report.page import REPORT_FIGURES, draw_result_figures, write_report_page
+
+    _, run = mapped
+    shutil.copytree(run, tmp_path / "run")
+    here = write_report_page(tmp_path / "run").read_bytes()
+    with worker_processes((), 2) as start:
+        waits = [start(draw_result_figures, (tmp_path / "run", part, 2)) for part in (0, 1)]
+        drawn = {k: v for wait in waits for k, v in wait().items()}
+    assert set(drawn) == set(FIGURES) - set(REPORT_FIGURES)
+    left = []
+
+    def the_rest(function, specs):
+        specs = list(specs)
+        left.append(len(specs))
+        return map(function, specs)
+
+    assert write_report_page(tmp_path / "run", figure_map=the_rest,
+                             drawn=drawn).read_bytes() == here
+    assert left == [1]  # stage-times
+    del drawn["cloud"]
+    assert write_report_page(tmp_path / "run", figure_map=the_rest,
+                             drawn=drawn).read_bytes() == here
+    assert left == [1, 2]
+
+
 def test_report_needs_a_finished_run(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 1
     err = capsys.readouterr().err

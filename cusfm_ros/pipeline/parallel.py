@@ -227,6 +227,12 @@ def call_on_process(function: Callable[[Item], Result], argument: Item,
     return next(process_map(function, [argument], 2, minimum=1))[1]
 
 
+def workers_ready(modules: Iterable[str] = (), processes: int = 0) -> bool:
+    """Whether ``worker_processes`` would start workers (more than one process allowed, a
+    fork server that has imported ``modules``) rather than run the work at once here."""
+    return not _runs_here(modules, processes)
+
+
 def _runs_here(modules: Iterable[str], processes: int) -> bool:
     """Work for one worker process runs in this one: one process allowed, or the fork server
     has not imported ``modules`` (a worker would import them itself, the cost avoided)."""

@@ -198,10 +198,13 @@ class StageRunner:
             start_process_server(dict.fromkeys(modules))
 
     def solve(self, run_dir: str | Path, bag: str | Path | None = None,
-              steps: list[str] | None = None, overwrite: bool = False) -> dict:
+              steps: list[str] | None = None, overwrite: bool = False,
+              after_stage: Callable[[str], None] | None = None) -> dict:
         """Run ``steps``. While it runs, ``report.json`` says ``status: running`` and
         ``RUN_DIR/COMPLETE`` is absent; it ends ``complete`` with the marker written, or
-        ``failed`` with the error and the stage it stopped in (then re-raised)."""
+        ``failed`` with the error and the stage it stopped in (then re-raised).
+        ``after_stage(name)``: called after each stage, run or reused (the mapper starts
+        drawing the report's figures once the results are exported)."""
         run = RunDir(run_dir)
         steps = self.check_steps(steps)
         first = next(stage for stage in self.stages if stage.name in steps)
@@ -231,6 +234,8 @@ class StageRunner:
                                 len(steps))
                     entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite,
                                                           beside if index == 0 else None)
+                    if after_stage is not None:
+                        after_stage(stage.name)
             except BaseException as exc:
                 self._drop_orphans(run)
                 digests.save()

@@ -208,7 +208,27 @@ def _table(rows: list[tuple[str, str]]) -> str:
     return f"<table>{body}</table>"
 
 
-def render(data: RunData, figure_map: FigureMap = map) -> str:
+REPORT_FIGURES = ("stage-times", "latency")
+"""Figures drawn from ``report.json`` (the stages' times, the queries), which changes to the
+end of a run; the others are drawn from its results."""
+
+
+def draw_result_figures(arguments: tuple) -> dict[str, str]:
+    """(run directory, part, parts) -> {figure id: base64 PNG} of every ``part``-th figure
+    (of ``parts``) that does not come from ``report.json``: module-level and one argument,
+    for worker processes that draw them while later stages run (the mapper, once the
+    results are exported)."""
+    from cusfm_ros.report.run_data import read_run_data
+
+    run_dir, part, parts = arguments
+    specs = [(figure_id, spec) for figure_id, _, spec in figure_specs(read_run_data(run_dir))
+             if figure_id not in REPORT_FIGURES]
+    return {figure_id: _draw(spec) for figure_id, spec in specs[part::parts]}
+
+
+def render(data: RunData, figure_map: FigureMap = map, drawn: dict[str, str] | None = None
+           ) -> str:
+    """The page; ``drawn``: figures already drawn (``draw_result_figures``), by id."""
     summary = data.report.get("summary") or {k: v for k, v in data.report.items()
                                              if k not in ("queries", "format")}
     rows = [(key.replace("_", " "), f"{value:.3f}" if isinstance(value, float) else str(value))
@@ -222,7 +242,11 @@ def render(data: RunData, figure_map: FigureMap = map) -> str:
                   + "</ul>")
     parts = []
     specs = figure_specs(data)
-    for (figure_id, caption, _), png in zip(specs, figure_map(_draw, [s for *_, s in specs])):
+    drawn = {k: v for k, v in (drawn or {}).items() if k not in REPORT_FIGURES}
+    todo = [s for s in specs if s[0] not in drawn]
+    drawn = {**drawn, **dict(zip((s[0] for s in todo), figure_map(_draw, [s for *_, s in todo])))}
+    for figure_id, caption, _ in specs:
+        png = drawn[figure_id]
         parts.append(f'<figure id="{figure_id}"><img alt="{html.escape(caption)}" '
                      f'src="data:image/png;base64,{png}"><figcaption>'
                      f"{html.escape(caption)}</figcaption></figure>")
@@ -255,26 +279,28 @@ text-align:left}}</style></head>
 
 
 def write_report_page(run_dir: str | Path, ground_truth: str | Path | None = None,
-                      figure_map: FigureMap = map) -> Path:
+                      figure_map: FigureMap = map, drawn: dict[str, str] | None = None
+                      ) -> Path:
     """Write ``RUN_DIR/report.html`` (atomically) and return its path; ``figure_map`` draws
-    the figures (the bytes do not depend on it)."""
+    the figures not in ``drawn`` (the bytes depend on neither)."""
     from cusfm_ros.report.run_data import read_run_data
 
     path = Path(run_dir) / "report.html"
-    page = render(read_run_data(run_dir, ground_truth), figure_map)
+    page = render(read_run_data(run_dir, ground_truth), figure_map, drawn)
     with atomic_write(path) as handle:
         handle.write(page)
     return path
 
 
 def write_page(run_dir: str | Path, ground_truth: str | Path | None = None,
-               figure_map: FigureMap = map) -> Path | None:
+               figure_map: FigureMap = map, drawn: dict[str, str] | None = None
+               ) -> Path | None:
     """``write_report_page`` for the end of a run: a failure to draw is a warning, never a
     failed map."""
     import logging
 
     try:
-        path = write_report_page(run_dir, ground_truth, figure_map)
+        path = write_report_page(run_dir, ground_truth, figure_map, drawn)
     except Exception as exc:  # noqa: BLE001 - the run is done; the page is a view of it
         logging.getLogger(__name__).warning("report.html not written (%s: %s)",
                                             type(exc).__name__, exc)
