@@ -649,6 +649,60 @@ def test_features_stage_batches_images_of_one_size(tmp_path, motorcycle):
                                           expected.keypoints_px)
 
 
+def test_features_stage_launches_a_batch_before_it_finishes_the_one_before(tmp_path,
+                                                                          motorcycle):
+    """With ``submit_batch`` (the torch ALIKED's: the network's pass launched, the rest
+    when the returned function runs), each batch is finished after the next is launched,
+    batches in order, every image stored; a size change and the end finish what is left."""
+    from cusfm_ros.io.feature_store import FeatureStore
+    from cusfm_ros.pipeline.stages.features import extract_features
+
+    events = []
+
+    class Launched(SiftExtractor):
+        batch_size = 2
+        parallel_images = False
+
+        def submit_batch(self, images):
+            number = sum(e[0] == "launch" for e in events)
+            events.append(("launch", number, len(images)))
+
+            def finish():
+                events.append(("finish", number))
+                return [self.extract(image) for image in images]
+            return finish
+
+    small = motorcycle[0][:200, :300].copy()
+    images = [(f"{i}.png", motorcycle[0] if i < 5 else small) for i in range(7)]
+    with FeatureStore(tmp_path / "f.h5", {}) as store:
+        assert extract_features(images, Launched(SiftOptions(max_keypoints=80)), store,
+                                threads=2)["extracted"] == 7
+        assert events == [("launch", 0, 2), ("launch", 1, 2), ("finish", 0),
+                          ("launch", 2, 1), ("finish", 1), ("launch", 3, 2), ("finish", 2),
+                          ("finish", 3)]
+        for name, image in images:
+            expected = SiftExtractor(SiftOptions(max_keypoints=80)).extract(image)
+            np.testing.assert_array_equal(store.features(name).keypoints_px,
+                                          expected.keypoints_px)
+
+
+def test_torch_aliked_batches_launched_before_the_last_is_finished(motorcycle):
+    """Two batches launched, then finished in turn: each batch's features are those of
+    ``extract_batch`` (on CPU tensors; on a GPU the launched pass is a graph replay whose
+    outputs are copied out before the next replay)."""
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor
+
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=300, device="cpu"))
+    left, right = motorcycle
+    first, second = [left, right], [right[::-1].copy(), left[:, ::-1].copy()]
+    finish_first = extractor.submit_batch(first)
+    finish_second = extractor.submit_batch(second)
+    for finish, batch in ((finish_first, first), (finish_second, second)):
+        for ours, theirs in zip(finish(), extractor.extract_batch(batch)):
+            np.testing.assert_array_equal(ours.keypoints_px, theirs.keypoints_px)
+            np.testing.assert_array_equal(ours.descriptors, theirs.descriptors)
+
+
 def test_a_failed_write_behind_the_batches_stops_the_stage_with_its_error(tmp_path,
                                                                          motorcycle):
     """Batches are written on a thread of their own; a write that fails is the stage's error,

@@ -79,14 +79,33 @@ def extract_features(images: Sequence[tuple[str, str | Path | np.ndarray]], extr
         for name, features in named:
             put(name, features)
 
-    def flush() -> None:
-        named = [(name, features) for (name, _), features in
-                 zip(batch, extractor.extract_batch([i for _, i in batch]))]
-        batch.clear()
+    submit = getattr(extractor, "submit_batch", None)
+    launched: list = []
+    """(names, the function that finishes them) of the batch on the device: it is finished
+    after the next batch is launched (``submit_batch``), so that the device runs that one
+    meanwhile."""
+
+    def finish_launched() -> None:
+        if not launched:
+            return
+        names, finish = launched.pop()
+        named = list(zip(names, finish()))
         # a failed write stops the stage here; at most two batches wait to be written
         while written and (written[0].done() or len(written) >= 2):
             written.popleft().result()
         written.append(writer.submit(put_all, named))
+
+    def flush() -> None:
+        images = [i for _, i in batch]
+        if submit is not None:
+            finish = submit(images)
+        else:
+            found = extractor.extract_batch(images)
+            finish = lambda: found  # noqa: E731
+        names = [name for name, _ in batch]
+        batch.clear()
+        finish_launched()
+        launched.append((names, finish))
 
     try:
         with _one_opencv_thread_per_image(in_threads and thread_count(threads) > 1):
@@ -101,6 +120,7 @@ def extract_features(images: Sequence[tuple[str, str | Path | np.ndarray]], extr
                     flush()
             if batch:
                 flush()
+            finish_launched()
         while written:
             written.popleft().result()
     finally:
