@@ -69,23 +69,26 @@ def test_no_indexed_stamps_where_the_indexes_cannot_give_them(tmp_path):
         assert bag.indexed_header_stamps([LEFT]) is None
     assert storage_files(tmp_path / "db") is None
 
-    # compressed chunks (written with the mcap library, as other recorders do)
+    # written with the mcap library, as other recorders do: compressed chunks, chunks
+    # without message indexes, no statistics: None; uncompressed and indexed: the stamps
+    from mcap.writer import CompressionType, IndexType
+
+    assert header_stamps([write_mcap(tmp_path / "zstd.mcap", CompressionType.ZSTD)],
+                         [LEFT]) is None
+    assert header_stamps([write_mcap(tmp_path / "chunks.mcap", index_types=IndexType.CHUNK)],
+                         [LEFT]) is None
+    assert header_stamps([write_mcap(tmp_path / "nostats.mcap", use_statistics=False)],
+                         [LEFT]) is None
+    assert header_stamps([write_mcap(tmp_path / "plain.mcap")], [LEFT]) == \
+        {LEFT: [0, 10, 20, 30, 40]}
+
+
+def write_mcap(path, compression=None, **options):
+    """Five 8x8 images on LEFT, header stamps 0, 10, ... 40 ns, through the mcap library."""
     from mcap.writer import CompressionType, Writer
 
-    with open(tmp_path / "zstd.mcap", "wb") as handle:
-        writer = Writer(handle, compression=CompressionType.ZSTD)
-        writer.start("ros2", "test")
-        schema = writer.register_schema("sensor_msgs/msg/Image", "ros2msg", b"")
-        channel = writer.register_channel(LEFT, "cdr", schema)
-        for k in range(5):
-            raw = m.typestore().serialize_cdr(
-                m.image_msg(np.zeros((8, 8, 3), np.uint8), k, "cam"), m.IMAGE)
-            writer.add_message(channel, log_time=k, data=bytes(raw), publish_time=k)
-        writer.finish()
-    assert header_stamps([tmp_path / "zstd.mcap"], [LEFT]) is None
-    # the same, uncompressed: the indexes give the stamps
-    with open(tmp_path / "plain.mcap", "wb") as handle:
-        writer = Writer(handle, compression=CompressionType.NONE)
+    with open(path, "wb") as handle:
+        writer = Writer(handle, compression=compression or CompressionType.NONE, **options)
         writer.start("ros2", "test")
         schema = writer.register_schema("sensor_msgs/msg/Image", "ros2msg", b"")
         channel = writer.register_channel(LEFT, "cdr", schema)
@@ -94,7 +97,7 @@ def test_no_indexed_stamps_where_the_indexes_cannot_give_them(tmp_path):
                 m.image_msg(np.zeros((8, 8, 3), np.uint8), 10 * k, "cam"), m.IMAGE)
             writer.add_message(channel, log_time=k, data=bytes(raw), publish_time=k)
         writer.finish()
-    assert header_stamps([tmp_path / "plain.mcap"], [LEFT]) == {LEFT: [0, 10, 20, 30, 40]}
+    return path
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])

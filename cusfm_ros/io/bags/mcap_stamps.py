@@ -11,9 +11,9 @@ message's payload starts) is the MCAP specification's, which no library call exp
 without reading the whole chunk.
 
 Returns None, for the caller to read the messages as before, wherever the shortcut does not
-apply: not MCAP, no summary or chunk index (a truncated or unindexed file), a compressed
-chunk holding the topic, a message encoding other than CDR, or an index that points at
-anything but that channel's message.
+apply: not MCAP, no summary or chunk index (a truncated or unindexed file), no statistics or
+fewer indexed messages than they count, a compressed chunk holding the topic, a message
+encoding other than CDR, or an index that points at anything but that channel's message.
 """
 
 from __future__ import annotations
@@ -70,6 +70,13 @@ def header_stamps(files: list[Path], topics: Iterable[str]) -> dict[str, list[in
                 channels = {i: c for i, c in summary.channels.items() if c.topic in topics}
                 if any(c.message_encoding != "cdr" for c in channels.values()):
                     return None
+                # the statistics say how many messages each channel has: a file whose
+                # chunks do not index them all is read as before
+                counts = summary.statistics.channel_message_counts if summary.statistics \
+                    else None
+                if counts is None:
+                    return None
+                indexed = {i: 0 for i in channels}
                 for chunk in summary.chunk_indexes:
                     wanted = [i for i in chunk.message_index_offsets if i in channels]
                     if not wanted:
@@ -93,6 +100,9 @@ def header_stamps(files: list[Path], topics: Iterable[str]) -> dict[str, list[in
                                 return None
                             found.append((log_time, number, chunk.chunk_start_offset, offset,
                                           channels[channel].topic, head[_MESSAGE_HEAD.size:]))
+                            indexed[channel] += 1
+                if any(indexed[i] != counts.get(i, 0) for i in channels):
+                    return None
     except (OSError, McapError, StopIteration, struct.error, ValueError) as exc:
         logger.debug("MCAP indexes unusable (%s); reading the messages", exc)
         return None
