@@ -82,10 +82,14 @@ class PointTable(Mapping):
         self._rows: dict[int, int] | None = None
 
     @classmethod
-    def from_points(cls, points: Iterable[ColmapPoint3D]) -> PointTable:
-        """The columns of ``points``, in id order (a ``PointTable`` is returned as it is)."""
+    def from_points(cls, points: Mapping[int, ColmapPoint3D] | Iterable[ColmapPoint3D]
+                    ) -> PointTable:
+        """The columns of ``points`` (a mapping by id, as ``ColmapReconstruction.points3d``,
+        or the points themselves), in id order; a ``PointTable`` is returned as it is."""
         if isinstance(points, PointTable):
             return points
+        if isinstance(points, Mapping):
+            points = points.values()
         points = sorted(points, key=lambda p: p.point3d_id)
         lengths = [len(p.image_ids) for p in points]
         ints = lambda arrays: (np.concatenate(arrays).astype(np.int64)  # noqa: E731

@@ -29,11 +29,6 @@ FILE_NAMES = ("cameras", "images", "points3D")
 
 
 # --------------------------------------------------------------------------------- validation
-def _point_table(model: ColmapReconstruction) -> PointTable:
-    return PointTable.from_points(model.points3d if isinstance(model.points3d, PointTable)
-                                  else model.points3d.values())
-
-
 def _validate(model: ColmapReconstruction, files: dict[str, Path], lines: dict,
               points: PointTable | None = None) -> None:
     """Cross-reference checks: images name known cameras, tracks name known images."""
@@ -42,7 +37,7 @@ def _validate(model: ColmapReconstruction, files: dict[str, Path], lines: dict,
             raise FormatError(files["images"], lines.get(("image", image.image_id)),
                               f"image {image.image_id} ({image.name}) uses camera "
                               f"{image.camera_id}, which is not in {files['cameras'].name}")
-    points = _point_table(model) if points is None else points
+    points = PointTable.from_points(model.points3d) if points is None else points
     # one membership test over every track entry (a set per point took seconds at 1M entries)
     known = np.isin(points.track_image_ids,
                     np.fromiter(model.images.keys(), np.int64, len(model.images)))
@@ -536,7 +531,7 @@ def write_model(model: ColmapReconstruction, directory: str | os.PathLike,
     the model. An error on either side leaves ``directory`` as it was."""
     directory = Path(directory)
     files = {name: directory / f"{name}.{ext}" for name in FILE_NAMES}
-    points = _point_table(model)
+    points = PointTable.from_points(model.points3d)
     _validate(model, files, {}, points)
     if ext not in ("txt", "bin"):
         raise CusfmError(f"unknown COLMAP model format {ext!r} (use 'txt' or 'bin')")
