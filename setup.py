@@ -40,7 +40,7 @@ setup(
             "localizer = cusfm_ros.ros.entry:localizer_main",
             "extrinsic_calibration = cusfm_ros.ros.entry:extrinsic_calibration_main",
             # the plain command line, no ROS needed
-            "cusfm = cusfm_ros.cli.main:main",
+            "cusfm = cusfm_ros.cli.main:console_main",
         ],
     },
 )

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from cusfm_ros.cli.main import main as cusfm
+from cusfm_ros.cli.process_exit import exit_process
 from cusfm_ros.core.evaluation import AteOptions, absolute_trajectory_error
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.io.tum import read_tum, write_tum
@@ -225,4 +226,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    exit_process(main(sys.argv[1:]))

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from cusfm_ros import __version__
 from cusfm_ros.cli import (calibrate, convert, demo, evaluate, fleet, inspect, keyframes,
                            localize, map, map_update, match, models, report, simulate, vocab)
+from cusfm_ros.cli.process_exit import exit_process
 from cusfm_ros.errors import CusfmError
 from cusfm_ros.pipeline.worker import CANCELLED_STATUS, Cancelled, raise_cancelled
 
@@ -82,5 +83,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130 if isinstance(exc, KeyboardInterrupt) else CANCELLED_STATUS
 
 
+def console_main() -> None:
+    """The ``cusfm`` console script: ``main`` on the command line's arguments, then the
+    process's exit (``exit_process``)."""
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

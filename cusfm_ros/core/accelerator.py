@@ -8,7 +8,9 @@ inputs there and its results back.
 
 from __future__ import annotations
 
+import ctypes
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +25,32 @@ def nvidia_gpu_present() -> bool:
     gpus = Path("/proc/driver/nvidia/gpus")
     return (Path("/dev/nvidia0").exists() or Path("/dev/dxg").exists()
             or (gpus.is_dir() and any(gpus.iterdir())))
+
+
+def open_cuda_context() -> threading.Thread | None:
+    """Start the CUDA driver and retain GPU 0's primary context on a thread, through the
+    driver's C API: a foreign call releases the GIL, so this overlaps torch's import, which
+    cannot (its shared libraries load under the GIL). torch's runtime later finds the driver
+    started and the primary context, which it uses too, already made. None, and nothing
+    started, without an NVIDIA GPU or its driver library. Errors are left to torch's own
+    start, which reports them as before."""
+    if not nvidia_gpu_present():
+        return None
+    try:
+        driver = ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return None
+
+    def start() -> None:
+        if driver.cuInit(0) != 0:
+            return
+        device, context = ctypes.c_int(), ctypes.c_void_p()
+        if driver.cuDeviceGet(ctypes.byref(device), 0) == 0:
+            driver.cuDevicePrimaryCtxRetain(ctypes.byref(context), device)
+
+    thread = threading.Thread(target=start, name="cusfm_cuda_start", daemon=True)
+    thread.start()
+    return thread
 
 
 def cuda_torch(device: str):

@@ -33,7 +33,8 @@ from pathlib import Path
 from typing import Any
 
 from cusfm_ros import __version__
-from cusfm_ros.core.accelerator import check_device, cuda_torch, nvidia_gpu_present
+from cusfm_ros.core.accelerator import (check_device, cuda_torch, nvidia_gpu_present,
+                                        open_cuda_context)
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.digest import DigestCache
@@ -256,8 +257,13 @@ class StageRunner:
     # ----------------------------------------------------------------------------- a stage
     def _device_start(self) -> None:
         """What runs beside the first stage: torch's import (which ``check_device`` does for
-        ``cuda`` and a later stage would do for ``auto``) and the device's check."""
+        ``cuda`` and a later stage would do for ``auto``) and the device's check. The CUDA
+        driver's start and the GPU's context are made on a thread meanwhile
+        (``open_cuda_context``)."""
+        starting = open_cuda_context()
         cuda_torch(self.options.device)
+        if starting is not None:
+            starting.join()
         check_device(self.options.device)
         _load_native_runtimes()
 
