@@ -21,6 +21,12 @@ def test_status_marker_and_a_failed_rerun(small_stereo_bag, tmp_path, capsys):
     assert report["status"] == "complete" and "error" not in report
     marker = json.loads((run / "COMPLETE").read_text())
     assert marker["steps"] == report["steps"] and "finished" in marker
+    # the timeline: seconds of the process's age, every stage run in order, none overlapping
+    timeline = report["timeline_s"]
+    spans = [timeline["stages"][name] for name in report["steps"]]
+    assert 0 < timeline["run_started"] <= spans[0][0]
+    assert all(start <= end <= later for (start, end), (later, _) in zip(spans, spans[1:]))
+    assert spans[-1][1] - spans[0][0] <= report["last_run_seconds"] + 0.05
     # a rerun whose mapping fails: the report says so, the marker is gone
     capsys.readouterr()
     assert main(args + ["--set", "refinement.min_points=1000000"]) == 1

@@ -170,6 +170,7 @@ class StageRunner:
         self.stages = stages
         self.options = options
         self.worker_modules = worker_modules
+        self._timeline: dict | None = None  # the current run's, in seconds of process age
         self.producer = {artifact: stage.name for stage in stages
                          for artifact in stage.outputs + stage.optional_outputs
                          + stage.provides}
@@ -224,6 +225,7 @@ class StageRunner:
                 _bind_bag(run, Path(bag), overwrite)
             digests = DigestCache(run.stages_dir / "digests.json", run.root)
             started = time.perf_counter()
+            self._timeline = {"run_started": _process_age_s(), "stages": {}}
             entries: dict[str, dict] = {}
             current = None
             run.complete_marker.unlink(missing_ok=True)
@@ -233,8 +235,10 @@ class StageRunner:
                     current = stage.name
                     logger.info("=== stage %s (%d/%d) ===", stage.name, index + 1,
                                 len(steps))
+                    stage_started = _process_age_s()
                     entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite,
                                                           beside if index == 0 else None)
+                    self._timeline["stages"][stage.name] = [stage_started, _process_age_s()]
                     if after_stage is not None:
                         after_stage(stage.name)
             except BaseException as exc:
@@ -266,6 +270,7 @@ class StageRunner:
             starting.join()
         check_device(self.options.device)
         _load_native_runtimes()
+        self._timeline["device_ready"] = _process_age_s()
 
     def _start_beside(self, stage: Stage) -> bool:
         """Whether ``stage`` runs on a forked child while this process imports torch: it uses
@@ -386,10 +391,35 @@ class StageRunner:
                   "versions": _versions(), "bag": str(bag) if bag is not None else None,
                   "stages": stages, "summary": _summary(stages),
                   "options": options_as_dict(self.options),
-                  "last_run_seconds": round(seconds, 3)}
+                  "last_run_seconds": round(seconds, 3),
+                  "timeline_s": _rounded(self._timeline)}
         with atomic_write(run.report) as handle:
             json.dump(report, handle, indent=2)
         return report
+
+
+def _process_age_s() -> float | None:
+    """Seconds since this process started (the kernel's start time against the clock it is
+    counted on; 10 ms steps), None where ``/proc`` does not say. The report's timeline counts
+    from there, so the interpreter's start and the imports before the run show too."""
+    try:
+        with open("/proc/self/stat") as handle:
+            fields = handle.read().rpartition(")")[2].split()
+        started = int(fields[19]) / os.sysconf("SC_CLK_TCK")  # field 22 of proc(5)
+        return time.clock_gettime(time.CLOCK_BOOTTIME) - started
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+def _rounded(value):
+    """``value`` with every float rounded to 10 ms (the timeline's resolution)."""
+    if isinstance(value, float):
+        return round(value, 2)
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_rounded(v) for v in value]
+    return value
 
 
 def _summary(stages: dict) -> dict:
