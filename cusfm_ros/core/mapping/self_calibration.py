@@ -101,7 +101,8 @@ class OffsetEstimate:
 
 
 def _robust_fit(radial_px: np.ndarray, jac_px: np.ndarray, residual_px: np.ndarray,
-                iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+                iterations: int = 8, arrays: Arrays = Arrays()
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Huber IRLS least squares of the (n, 2) residuals on the unknowns (offset x, offset y,
     focal ratio, beta): x rows ``offset_x + ratio * radial_x + beta * jac_x``, y rows alike;
     (coefficients, standard errors). Each step solves the 4 x 4 weighted normal equations
@@ -109,43 +110,59 @@ def _robust_fit(radial_px: np.ndarray, jac_px: np.ndarray, residual_px: np.ndarr
     built from dot products of the columns: the offsets' columns are indicators, so the
     (2n, 4) design and its weighted copy per step are never formed (at ~250k observations
     those temporaries were most of the 1.7 s that four rounds took on the GPU machine; an
-    SVD of the whole design per step took 0.8 s of a 300-frame map before that)."""
+    SVD of the whole design per step took 0.8 s of a 300-frame map before that). The columns
+    live where ``arrays`` says (float64 on the GPU: a fit of 250k observations took 0.16 s
+    on a 2-core CPU, and the fits were a quarter of a 300-frame map's mapping stage on the
+    GPU machine); the small systems are solved here."""
     n = len(residual_px)
-    ratio = np.r_[radial_px[:, 0], radial_px[:, 1]]
-    beta = np.r_[jac_px[:, 0], jac_px[:, 1]]
-    target = np.r_[residual_px[:, 0], residual_px[:, 1]]
-    w2 = np.ones(2 * n)  # the squared Huber weights
-    w2_ratio, w2_beta, residual = (np.empty(2 * n) for _ in range(3))
+    # numpy or torch, called alike (both take ``out=``: the loop allocates nothing)
+    lib = np if arrays.torch is None else arrays.torch
+    ratio, beta, target = (arrays.put(np.r_[a[:, 0], a[:, 1]].astype(np.float64))
+                           for a in (radial_px, jac_px, residual_px))
+    w2 = lib.ones_like(target)  # the squared Huber weights
+    w2_ratio, w2_beta, residual = (lib.empty_like(target) for _ in range(3))
+    x, y = slice(0, n), slice(n, 2 * n)
 
-    def normal() -> np.ndarray:
-        np.multiply(w2, ratio, out=w2_ratio)
-        np.multiply(w2, beta, out=w2_beta)
-        x, y = slice(0, n), slice(n, 2 * n)
-        upper = np.array([
-            [w2[x].sum(), 0.0, w2_ratio[x].sum(), w2_beta[x].sum()],
-            [0.0, w2[y].sum(), w2_ratio[y].sum(), w2_beta[y].sum()],
-            [0.0, 0.0, w2_ratio @ ratio, w2_ratio @ beta],
-            [0.0, 0.0, 0.0, w2_beta @ beta]])
-        return np.triu(upper) + np.triu(upper, 1).T
+    def system() -> tuple[np.ndarray, np.ndarray]:
+        """The normal equations' matrix and right-hand side (one transfer of 13 sums)."""
+        lib.multiply(w2, ratio, out=w2_ratio)
+        lib.multiply(w2, beta, out=w2_beta)
+        sums = arrays.get(lib.stack([
+            w2[x].sum(), w2[y].sum(), w2_ratio[x].sum(), w2_beta[x].sum(), w2_ratio[y].sum(),
+            w2_beta[y].sum(), lib.dot(w2_ratio, ratio), lib.dot(w2_ratio, beta),
+            lib.dot(w2_beta, beta), lib.dot(w2[x], target[x]), lib.dot(w2[y], target[y]),
+            lib.dot(w2_ratio, target), lib.dot(w2_beta, target)]))
+        wx, wy, rx, bx, ry, by, rr, rb, bb, tx, ty, rt, bt = sums.tolist()
+        matrix = np.array([[wx, 0.0, rx, bx], [0.0, wy, ry, by], [rx, ry, rr, rb],
+                           [bx, by, rb, bb]])
+        return matrix, np.array([tx, ty, rt, bt])
 
     coef, scale = np.zeros(4), 1e-9
     for _ in range(iterations):
-        matrix = normal()
-        rhs = np.array([w2[:n] @ target[:n], w2[n:] @ target[n:], w2_ratio @ target,
-                        w2_beta @ target])
+        matrix, rhs = system()
         coef = np.linalg.lstsq(matrix, rhs, rcond=None)[0]
-        np.multiply(ratio, coef[2], out=residual)
-        residual += coef[3] * beta
-        residual[:n] += coef[0]
-        residual[n:] += coef[1]
-        np.subtract(target, residual, out=residual)
-        np.abs(residual, out=residual)
-        scale = max(1.4826 * float(np.median(residual)), 1e-9)
-        np.maximum(residual, 1e-12, out=residual)
-        np.divide(1.5 * scale, residual, out=w2)
-        np.minimum(w2, 1.0, out=w2)
-    covariance = np.linalg.pinv(normal()) * scale ** 2
+        lib.multiply(ratio, float(coef[2]), out=residual)
+        residual += float(coef[3]) * beta
+        residual[x] += float(coef[0])
+        residual[y] += float(coef[1])
+        lib.subtract(target, residual, out=residual)
+        lib.abs(residual, out=residual)
+        scale = max(1.4826 * _median(residual, arrays), 1e-9)
+        lib.clip(residual, 1e-12, None, out=residual)
+        lib.divide(1.5 * scale, residual, out=w2)
+        lib.clip(w2, None, 1.0, out=w2)
+    covariance = np.linalg.pinv(system()[0]) * scale ** 2
     return coef, np.sqrt(np.maximum(np.diag(covariance), 0.0))
+
+
+def _median(values, arrays: Arrays) -> float:
+    """numpy's median (the mean of the middle two of an even count) of a 1-D array, on the
+    array's own device (the array API has no median)."""
+    if arrays.torch is None:
+        return float(np.median(values))
+    ordered = arrays.torch.sort(values).values
+    count = ordered.shape[0]
+    return float((ordered[(count - 1) // 2] + ordered[count // 2]) / 2)
 
 
 def estimate_offsets(poses: BundleProblem, obs_image: np.ndarray, obs_xy: np.ndarray,
@@ -203,7 +220,7 @@ def estimate_offsets(poses: BundleProblem, obs_image: np.ndarray, obs_xy: np.nda
         if n < options.min_points:
             continue
         radial_px = obs_xy[sel][ok] / per_px[ok, None]
-        coef, sigma = _robust_fit(radial_px, jac_px[ok], residual_px[ok])
+        coef, sigma = _robust_fit(radial_px, jac_px[ok], residual_px[ok], arrays=arrays)
         offset = coef[:2]
         within = bool(np.all(np.abs(offset) <= options.max_offset_px)
                       and abs(coef[2]) <= options.max_focal_ratio)
