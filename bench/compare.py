@@ -125,7 +125,8 @@ def row(result: dict, spec: dict) -> dict:
             "total_s": result["seconds"], "total_per_100_frames_s": result["seconds"] * per_100,
             "peak_rss_mb": result["peak_rss_mb"], "gpu_peak_mb": result.get("gpu_peak_mb"),
             "registered": result.get("registered", 0), "models": result.get("models", 0),
-            "ate_m": result.get("ate_m", {}), "failed": result.get("failed")}
+            "ate_m": result.get("ate_m", {}), "failed": result.get("failed"),
+            "timeline_s": result.get("timeline_s")}
 
 
 def _cell(value, digits: int = 2) -> str:

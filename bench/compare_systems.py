@@ -5,7 +5,7 @@ memory is its own): ``python bench/compare_systems.py SYSTEM INPUT_JSON WORK_DIR
 Writes ``WORK_DIR/result.json``: ``stages_s`` (seconds by stage), ``trajectory`` (a TUM file
 of the reference camera's ``world_from_cam``, the path every system is scored on),
 ``registered`` (images of the reference camera with a pose), ``models`` (fragments), and for
-ours the GPU peak memory. Systems:
+ours the GPU peak memory and the run's ``timeline_s`` (report.json's). Systems:
 
 - ``ours_view_graph_sift`` / ``ours_radius_sift`` / ``ours_view_graph_aliked`` /
   ``ours_view_graph_xfeat``: ``cusfm map`` (SIFT + k-NN, ALIKED + LightGlue or XFeat +
@@ -65,7 +65,8 @@ def run_ours(system: str, spec: dict, work: Path, device: str, max_keypoints: in
     write_tum(work / "trajectory.tum", Trajectory(poses.stamps_ns, cam))
     return {"stages_s": stages, "trajectory": str(work / "trajectory.tum"),
             "registered": len(poses), "models": 1,
-            "gpu_peak_mb": report["summary"].get("gpu_peak_mb")}
+            "gpu_peak_mb": report["summary"].get("gpu_peak_mb"),
+            "timeline_s": report.get("timeline_s")}
 
 
 def _images(spec: dict, cameras: list[str]) -> list[str]:

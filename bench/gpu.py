@@ -75,23 +75,46 @@ def outside_stages(row: dict) -> float | None:
     return row["total_per_100_frames_s"] - sum(stages.values())
 
 
+def outside_parts(row: dict) -> dict[str, float] | None:
+    """The time outside the stages (seconds per 100 frames) from the run's timeline: before
+    (the process's start to the first stage: the interpreter and the imports), between (in
+    the stages' span but not their own work: torch's import waited for beside the first
+    stage, the digests, the records, the stages no column shows) and after (the last stage's
+    end to the process's end: the report page, the benchmark's scoring, the exit). None
+    without a timeline (a failed run, another system, code from before it)."""
+    timeline = row.get("timeline_s") or {}
+    spans = list((timeline.get("stages") or {}).values())
+    stages = row["seconds_per_100_frames"]
+    if row["failed"] or not spans or not stages or any(v is None for s in spans for v in s):
+        return None
+    per_100 = 100.0 / row["frames"]
+    before = spans[0][0] * per_100
+    after = row["total_per_100_frames_s"] - spans[-1][1] * per_100
+    return {"before": before, "between": outside_stages(row) - before - after, "after": after}
+
+
 def markdown(rows: list[dict], header: str) -> str:
     columns = compare.STAGE_COLUMNS
     labelled = any(r.get("code") != "this" or r.get("run", 1) > 1 for r in rows)
     label = "code, run | " if labelled else ""
     lines = [header, "", "Seconds per 100 frames by stage (total: the whole process; outside: "
              "its time outside the stages, such as the interpreter's and torch's start, CUDA's "
-             "initialisation and the report page)", "",
-             f"| {label}frames | device | " + " | ".join(columns) + " | outside | total | "
+             "initialisation and the report page; before / between / after: where, from the "
+             "run's timeline: before the first stage, inside the stages' span but not their "
+             "own work, after the last stage)", "",
+             f"| {label}frames | device | " + " | ".join(columns) + " | outside | "
+             "before / between / after | total | "
              "peak RSS MB | GPU peak MB | GPU used MB | GPU busy % | ATE SE(3) m |",
-             "|---" * (len(columns) + 9 + bool(label)) + "|"]
+             "|---" * (len(columns) + 10 + bool(label)) + "|"]
     for r in rows:
         stages = [compare._cell(r["seconds_per_100_frames"].get(c), 1) for c in columns]
         total = r["failed"] or compare._cell(r["total_per_100_frames_s"], 1)
         ate = r["ate_m"].get("se3", {}).get("rmse")
         cell = f"{r['code']}, {r['run']} | " if labelled else ""
+        parts = outside_parts(r)
+        split = "—" if parts is None else " / ".join(f"{v:.1f}" for v in parts.values())
         lines.append(f"| {cell}{r['frames']} | {r['device']} | " + " | ".join(stages)
-                     + f" | {compare._cell(outside_stages(r), 1)} | {total} | "
+                     + f" | {compare._cell(outside_stages(r), 1)} | {split} | {total} | "
                      f"{r['peak_rss_mb']:.0f} | {compare._cell(r['gpu_peak_mb'], 0)} | "
                      f"{compare._cell(r.get('gpu_used_mb'), 0)} | "
                      f"{compare._cell(r.get('gpu_busy_pct'), 0)} | {compare._cell(ate, 4)} |")

@@ -17,7 +17,7 @@ sys.path.insert(0, str(BENCH))
 
 ROW_KEYS = {"input", "frames", "system", "seconds_per_100_frames", "total_s",
             "total_per_100_frames_s", "peak_rss_mb", "gpu_peak_mb", "registered", "models",
-            "ate_m", "failed"}
+            "ate_m", "failed", "timeline_s"}
 STATS = {"rmse", "mean", "median", "std", "min", "max", "n"}
 
 
@@ -77,8 +77,13 @@ def test_gpu_bench_runs_each_device_and_reports_the_stages(bench_out):
     assert 0 < outside == gpu.outside_stages(row)
     line, = [x for x in (bench_out / "gpu.md").read_text().splitlines()
              if x.startswith("| 30 | cpu | ")]
-    assert f" | {outside:.1f} | {row['total_per_100_frames_s']:.1f} | " in line
+    parts = gpu.outside_parts(row)
+    assert set(parts) == {"before", "between", "after"} and min(parts.values()) >= 0
+    assert sum(parts.values()) == pytest.approx(outside)
+    split = " / ".join(f"{v:.1f}" for v in parts.values())
+    assert f" | {outside:.1f} | {split} | {row['total_per_100_frames_s']:.1f} | " in line
     assert gpu.outside_stages({**row, "failed": "exit 1: ..."}) is None
+    assert gpu.outside_parts({**row, "timeline_s": None}) is None
 
 
 def test_gpu_busy_is_the_mean_of_nvidia_smis_samples_over_a_run(tmp_path, monkeypatch):
