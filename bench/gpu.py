@@ -84,13 +84,13 @@ def outside_parts(row: dict) -> dict[str, float] | None:
     without a timeline (a failed run, another system, code from before it)."""
     timeline = row.get("timeline_s") or {}
     spans = list((timeline.get("stages") or {}).values())
-    stages = row["seconds_per_100_frames"]
-    if row["failed"] or not spans or not stages or any(v is None for s in spans for v in s):
+    outside = outside_stages(row)
+    if outside is None or not spans or any(v is None for span in spans for v in span):
         return None
     per_100 = 100.0 / row["frames"]
     before = spans[0][0] * per_100
     after = row["total_per_100_frames_s"] - spans[-1][1] * per_100
-    return {"before": before, "between": outside_stages(row) - before - after, "after": after}
+    return {"before": before, "between": outside - before - after, "after": after}
 
 
 def markdown(rows: list[dict], header: str) -> str:

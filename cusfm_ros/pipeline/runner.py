@@ -392,34 +392,24 @@ class StageRunner:
                   "stages": stages, "summary": _summary(stages),
                   "options": options_as_dict(self.options),
                   "last_run_seconds": round(seconds, 3),
-                  "timeline_s": _rounded(self._timeline)}
+                  "timeline_s": self._timeline}
         with atomic_write(run.report) as handle:
             json.dump(report, handle, indent=2)
         return report
 
 
 def _process_age_s() -> float | None:
-    """Seconds since this process started (the kernel's start time against the clock it is
-    counted on; 10 ms steps), None where ``/proc`` does not say. The report's timeline counts
-    from there, so the interpreter's start and the imports before the run show too."""
+    """Seconds since this process started, to its 10 ms resolution (the kernel's start time
+    against the clock it is counted on), None where ``/proc`` does not say. The report's
+    timeline counts from there, so the interpreter's start and the imports before the run
+    show too."""
     try:
         with open("/proc/self/stat") as handle:
             fields = handle.read().rpartition(")")[2].split()
         started = int(fields[19]) / os.sysconf("SC_CLK_TCK")  # field 22 of proc(5)
-        return time.clock_gettime(time.CLOCK_BOOTTIME) - started
+        return round(time.clock_gettime(time.CLOCK_BOOTTIME) - started, 2)
     except (OSError, ValueError, IndexError, AttributeError):
         return None
-
-
-def _rounded(value):
-    """``value`` with every float rounded to 10 ms (the timeline's resolution)."""
-    if isinstance(value, float):
-        return round(value, 2)
-    if isinstance(value, dict):
-        return {k: _rounded(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_rounded(v) for v in value]
-    return value
 
 
 def _summary(stages: dict) -> dict:
