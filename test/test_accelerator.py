@@ -6,6 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+import threading
 
 import pytest
 
@@ -14,8 +15,9 @@ from cusfm_ros.core import accelerator
 
 def test_no_cuda_start_without_an_nvidia_gpu(monkeypatch):
     monkeypatch.setattr(accelerator, "nvidia_gpu_present", lambda: False)
+    before = {thread.name for thread in threading.enumerate()}
     assert accelerator.open_cuda_context() is None
-    assert accelerator.cuda_torch("auto") is None or "torch" in sys.modules
+    assert "cusfm_cuda_start" not in {t.name for t in threading.enumerate()} - before
 
 
 @pytest.mark.gpu
