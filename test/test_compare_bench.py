@@ -110,6 +110,29 @@ def test_gpu_busy_is_the_mean_of_nvidia_smis_samples_over_a_run(tmp_path, monkey
     assert busy.percent is None
 
 
+def test_bytecode_note_names_the_packages_compiled_at_every_start(tmp_path, monkeypatch):
+    """The machine line says whether the packages load from bytecode: a package with its
+    ``.pyc`` where the interpreter looks is not named, one without is; an absent package is
+    skipped."""
+    import py_compile
+
+    import compare
+
+    package = tmp_path / "site" / "cachedpkg"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("x = 1\n")
+    other = tmp_path / "site" / "plainpkg"
+    other.mkdir()
+    (other / "__init__.py").write_text("y = 2\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    monkeypatch.setattr(sys, "pycache_prefix", str(tmp_path / "prefix"))
+    py_compile.compile(str(package / "__init__.py"))  # written under the prefix
+    note = compare.bytecode_note(("cachedpkg", "plainpkg", "no_such_package_here"))
+    assert note == "no bytecode for plainpkg (compiled from source at every start)"
+    py_compile.compile(str(other / "__init__.py"))
+    assert compare.bytecode_note(("cachedpkg", "plainpkg")) == "modules load from bytecode"
+
+
 def test_gpu_bench_alternates_with_another_checkout(bench_out, tmp_path, capsys):
     """``--against`` runs another checkout's code after each run of this one, on the same
     inputs, ``--repeat`` times; the rows say which code ran (the other copy reports its own
