@@ -221,3 +221,33 @@ def _alive(pid: int) -> bool:
     except (FileNotFoundError, ProcessLookupError):
         return False
     return state != "Z"  # a zombie (reparented, not yet reaped) is gone
+
+
+def test_a_gpu_runs_torch_compiled_from_source_is_named_with_the_fix(tmp_path, monkeypatch,
+                                                                      caplog):
+    """The runner warns, once per run, when the GPU run's torch has no bytecode where this
+    Python looks (every start compiles it again); not once its ``.pyc`` is there, nor on a
+    CPU run (no module)."""
+    import logging
+    import py_compile
+    import types
+
+    from cusfm_ros.pipeline import runner
+
+    package = tmp_path / "site" / "faketorch"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("x = 1\n")
+    module = types.ModuleType("faketorch")
+    module.__file__ = str(package / "__init__.py")
+    monkeypatch.setattr(sys, "pycache_prefix", str(tmp_path / "prefix"))
+    with caplog.at_level(logging.WARNING, logger="cusfm_ros.pipeline.runner"):
+        runner._note_source_imports(module)
+        runner._note_source_imports(None)
+    (record,) = caplog.records
+    assert record.getMessage().startswith("faketorch is compiled from source at every start")
+    assert f"python -m compileall -q -j 0 {tmp_path / 'site'}" in record.getMessage()
+    caplog.clear()
+    py_compile.compile(module.__file__)  # under the prefix, where this Python looks
+    with caplog.at_level(logging.WARNING, logger="cusfm_ros.pipeline.runner"):
+        runner._note_source_imports(module)
+    assert caplog.records == []
