@@ -15,10 +15,11 @@ for path in Path(".whl/weights").iterdir():
 PY
 export PYTHONPATH=/tmp/devsite:$PWD${PYTHONPATH:+:$PYTHONPATH}
 # Byte-compile what the runs import, as a pip install would have: the lent machine's torch
-# and standard library carry no .pyc files and PYTHONDONTWRITEBYTECODE is set, so every
-# process compiled torch, numpy, the devsite and our modules from source at every start
-# (~1.5 s of torch's import alone). The cache lives outside the read-only trees
-# (PYTHONPYCACHEPREFIX); CUSFM_BENCH_NO_BYTECODE=1 keeps the machine as it was.
+# and numpy carry no .pyc files and PYTHONDONTWRITEBYTECODE is set, so every process
+# compiled torch, numpy, the devsite and our modules from source at every start (torch's
+# import 3.7 s, 1.4-1.7 s from bytecode). The cache is kept apart (PYTHONPYCACHEPREFIX: the
+# machine's own files stay as they are), so the standard library is compiled there too;
+# CUSFM_BENCH_NO_BYTECODE=1 keeps the machine as it was.
 if [ -z "${CUSFM_BENCH_NO_BYTECODE:-}" ]; then
   export PYTHONPYCACHEPREFIX=${PYTHONPYCACHEPREFIX:-/tmp/pycache}
   unset PYTHONDONTWRITEBYTECODE
