@@ -215,8 +215,8 @@ class StageRunner:
         beside = self._device_start if self._start_beside(first) else None
         if beside is None:
             check_device(self.options.device)
-            if self.options.device != "cpu" and "torch" in sys.modules:
-                _note_source_imports(cuda_torch(self.options.device))  # a GPU run's torch
+            if "torch" in sys.modules:  # None on a CPU run, or where torch sees no GPU
+                _note_source_imports(cuda_torch(self.options.device))
             _load_native_runtimes()
         self._start_workers_server(steps)
         _check_run_dir(run)
