@@ -66,8 +66,7 @@ def main() -> None:
                 for start in range(0, len(images) - batch_size + 1, batch_size):
                     batch = images[start:start + batch_size]
                     with torch.inference_mode(), autocast:
-                        x, t_up = timed(lambda b: torch.stack(
-                            [extractor._network_input(i) for i in b]), batch)
+                        x, t_up = timed(extractor._network_input, batch)
                         if variant == "channels_last":
                             x = x.contiguous(memory_format=torch.channels_last)
                         (scores, fmap), t_dense = timed(model.dense, x)

@@ -900,7 +900,7 @@ def test_torch_aliked_converts_on_the_device_as_prepare_image_does(rng):
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor
 
     extractor = TorchAlikedExtractor.__new__(TorchAlikedExtractor)  # no weights needed
-    extractor.torch, extractor.device = torch, "cpu"
+    extractor.torch, extractor.device = torch, torch.device("cpu")
     images = [rng.integers(0, 256, (40, 50), dtype=np.uint8),
               rng.integers(0, 256, (40, 50, 1), dtype=np.uint8),
               rng.integers(0, 256, (40, 50, 4), dtype=np.uint8),
@@ -908,9 +908,11 @@ def test_torch_aliked_converts_on_the_device_as_prepare_image_does(rng):
               rng.random((40, 50)), rng.random((40, 50, 3)).astype(np.float32)]
     for image in images:
         expected = prepare_image(image).transpose(2, 0, 1)
-        got = extractor._network_input(image)
-        assert got.dtype == torch.float32
-        np.testing.assert_array_equal(got.numpy(), expected)
+        got = extractor._network_input([image, image])  # a batch of one dtype and size
+        assert got.dtype == torch.float32 and got.shape == (2, *expected.shape)
+        np.testing.assert_array_equal(got[1].numpy(), expected)
+    with pytest.raises(FeatureError, match="images of one dtype"):
+        extractor._network_input([images[0], images[0].astype(np.uint16)])
     extractor.options = AlikedOptions()
     with pytest.raises(FeatureError, match="unsupported image dtype int32"):
         extractor.extract(np.zeros((40, 50), np.int32))
@@ -1031,3 +1033,49 @@ def test_networks_prepared_on_another_thread_are_the_ones_the_stages_get():
     prepare_models(sift, "cpu")
     prepare_models(FeatureOptions(backend="onnx"), "cpu")
     assert components._TORCH_MODELS == before
+
+
+def test_fixed_shape_detection_and_descriptors_equal_the_variable_ones():
+    """``detect_keypoints_fixed`` and ``SddhHead.forward_fixed`` (one CUDA graph per batch in
+    the torch backend) give each image the keypoints, order, scores and descriptors of
+    ``detect_keypoints_batch`` and ``forward_batch``: raster order up to the cap (a count
+    exactly at the cap included), the strongest first above it, the mean score as the cut
+    where nothing passes the threshold, the K strongest without a threshold, an image whose
+    mask allows nothing with none; the padded rows are finite."""
+    import torch.nn.functional as F
+
+    from cusfm_ros.models.nets.aliked import (SddhHead, detect_keypoints_batch,
+                                              detect_keypoints_fixed)
+
+    generator = torch.Generator().manual_seed(5)
+    noise = torch.rand((3, 1, 48, 64), generator=generator)
+    scores = F.avg_pool2d(noise, 3, stride=1, padding=1)  # smooth maps with many maxima
+    head = SddhHead("aliked-n16")
+    with torch.no_grad():
+        for parameter in head.parameters():
+            parameter.copy_(torch.randn(parameter.shape, generator=generator) * 0.1)
+    features = torch.randn((3, 128, 48, 64), generator=generator)
+    allowed = torch.ones((3, 48, 64), dtype=torch.bool)
+    allowed[1] = False
+    at_cap = len(detect_keypoints_batch(scores, 2, 0.5)[0][0])
+    cases = [dict(threshold=0.5), dict(threshold=0.5, max_keypoints=30),
+             dict(threshold=0.5, max_keypoints=at_cap), dict(threshold=5.0),
+             dict(threshold=-1, max_keypoints=50), dict(threshold=0.5, allowed=allowed)]
+    with torch.inference_mode():
+        for case in cases:
+            expected = detect_keypoints_batch(scores, 2, **case)
+            keypoints, kp_scores, counts = detect_keypoints_fixed(scores, 2, **case)
+            assert counts.tolist() == [len(k) for k, _ in expected], case
+            assert torch.isfinite(keypoints).all() and torch.isfinite(kp_scores).all()
+            descriptors = head.forward_fixed(features, keypoints)
+            wanted = head.forward_batch(features, [k for k, _ in expected])
+            start = 0
+            for i, (points, values) in enumerate(expected):
+                count = len(points)
+                torch.testing.assert_close(keypoints[i, :count], points, atol=1e-5, rtol=0)
+                torch.testing.assert_close(kp_scores[i, :count], values, atol=1e-6, rtol=0)
+                torch.testing.assert_close(descriptors[i, :count], wanted[start:start + count],
+                                           atol=1e-5, rtol=1e-5)
+                start += count
+    counts_seen = [len(k) for k, _ in detect_keypoints_batch(scores, 2, 0.5)]
+    assert min(counts_seen) > 30 and at_cap > 30  # the cases above cut, and fill the cap

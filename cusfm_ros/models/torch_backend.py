@@ -28,7 +28,7 @@ from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
 from cusfm_ros.models.device_features import DeviceFeatures, split
 from cusfm_ros.models.graphed_passes import GraphedPasses, graph_side
-from cusfm_ros.models.nets.aliked import detect_keypoints_batch
+from cusfm_ros.models.nets.aliked import detect_keypoints_fixed
 from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
 from cusfm_ros.models.nets.xfeat import detect_and_describe
 
@@ -78,27 +78,51 @@ class TorchAlikedExtractor:
         self.device = _device(options.device)
         self.model = load_aliked().to(self.device)
         self.batch_size = options.batch_size if self.device.type == "cuda" else 1
-        self.dense = self.model.dense
+        self._pass = self._whole_pass
         if self.device.type == "cuda" and options.cuda_graphs:
-            # a replay's outputs are copied out of the graph's (~0.5 ms for a batch's ~1 GB
-            # of feature maps): the next batch's pass runs before this one is finished
-            self.dense = GraphedPasses(torch, self.model.dense, name="aliked")
-        # one batch at a time from its pass to the copy of the graph's outputs: a replay
-        # overwrites them, and the batch before may not have queued its copy on them yet
+            # the network, the detection and the descriptors, one graph per batch shape; a
+            # replay's output (the batch's keypoints, ~1 MB an image) is copied out of the
+            # graph's: the next batch's pass runs before this one is read back
+            self._pass = GraphedPasses(torch, self._whole_pass, name="aliked")
+        # one batch at a time from its pass to the copy of the graph's output: a replay
+        # overwrites it, and the batch before may not have queued its copy on it yet
         self._lock = threading.Lock()
+
+    def _whole_pass(self, images, allowed) -> tuple:
+        """(B, 3, H, W) images -> (B, 1 + K * (3 + D)): each image's keypoint count, then K
+        rows of x, y, score and descriptor, the first ``count`` real
+        (``detect_keypoints_fixed``). Fixed shapes and no host sync: one CUDA graph."""
+        o, torch = self.options, self.torch
+        scores, feature_map = self.model.dense(images)
+        keypoints, kp_scores, counts = detect_keypoints_fixed(
+            scores, o.nms_radius, o.detection_threshold, o.max_keypoints, allowed=allowed)
+        descriptors = self.model.desc_head.forward_fixed(feature_map, keypoints)
+        rows = torch.cat([keypoints, kp_scores[..., None], descriptors], dim=2).float()
+        return (torch.cat([counts[:, None].float(), rows.flatten(1)], dim=1),)
 
     def config(self) -> dict:
         return {"name": self.name, "backend": "torch", **self.options.__dict__}
 
-    def _network_input(self, image: np.ndarray):
-        """(3, H, W) float32 RGB in [0, 1] on the device, as ``prepare_image`` makes it,
-        converted there: the image crosses as its own dtype (uint8: a quarter of the bytes),
-        and the CPU thread that feeds the GPU does no per-pixel work."""
-        tensor = self.torch.from_numpy(np.ascontiguousarray(image)).to(self.device)
-        tensor = tensor.float() / SCALE[image.dtype] if image.dtype != np.float32 else tensor
-        if tensor.ndim == 2:
+    def _network_input(self, images: Sequence[np.ndarray]):
+        """(B, 3, H, W) float32 RGB in [0, 1] on the device, as ``prepare_image`` makes it,
+        converted there: the images cross as one batch of their own dtype (uint8: a quarter
+        of the bytes) from pinned memory, behind the work already queued, so that the
+        thread that feeds the GPU neither does per-pixel work nor waits for the pass before
+        (a copy from pageable memory waited for it: 0.8 s of the features stage's main
+        thread at 200 street frames, py-spy on the H100 machine)."""
+        torch = self.torch
+        dtypes = {image.dtype for image in images}
+        if len(dtypes) != 1:
+            raise FeatureError(f"extract_batch needs images of one dtype, got "
+                               f"{sorted(map(str, dtypes))}")
+        dtype, = dtypes
+        tensor = torch.from_numpy(np.stack([np.asarray(image) for image in images]))
+        if self.device.type == "cuda":
+            tensor = tensor.pin_memory().to(self.device, non_blocking=True)
+        tensor = tensor.float() / SCALE[dtype] if dtype != np.float32 else tensor
+        if tensor.ndim == 3:
             tensor = tensor[..., None]
-        return tensor[..., :3].expand(-1, -1, 3).permute(2, 0, 1)
+        return tensor[..., :3].expand(-1, -1, -1, 3).permute(0, 3, 1, 2).contiguous()
 
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
         return self.extract_batch([image], None if mask is None else [mask])[0]
@@ -114,14 +138,11 @@ class TorchAlikedExtractor:
     def submit_batch(self, images: Sequence[np.ndarray],
                      masks: Sequence[np.ndarray] | None = None
                      ) -> Callable[[], list[Features]]:
-        """``extract_batch`` in two halves: the dense network's pass is launched on the
-        device now (its outputs copied out of the CUDA graph's, which the next replay
-        overwrites), and the function returned runs the detection (a host sync), the
-        descriptors and the copy back. The features stage launches a batch before it
-        finishes the one before, so the GPU runs a network pass while the CPU finishes the
-        last batch: one batch at a time, the GPU idled through each batch's host work and
-        the main thread waited through each pass (1.25 s of a 300-frame run's 3 s stage at
-        the detection's sync; py-spy on the H100 machine)."""
+        """``extract_batch`` in two halves: the whole pass (network, detection, descriptors;
+        one CUDA graph) and the copy of its result to the host are launched now, and the
+        function returned waits for the copy and splits it per image. The features stage
+        launches a batch before it finishes the one before, so the GPU runs a pass while
+        the CPU finishes the last batch."""
         torch = self.torch
         images = [checked_image(image, MIN_IMAGE_PX) for image in images]
         sizes = {image.shape[:2] for image in images}
@@ -135,31 +156,28 @@ class TorchAlikedExtractor:
                 if np.asarray(mask).shape[:2] != (h, w):
                     raise FeatureError(f"mask is {np.asarray(mask).shape[:2]} but the image "
                                        f"is {(h, w)}")
-        o = self.options
         with torch.inference_mode(), self._lock:
-            scores, feature_map = self.dense(
-                torch.stack([self._network_input(image) for image in images]))
             allowed = None if masks is None else torch.from_numpy(
                 np.stack([np.asarray(mask) > 0 for mask in masks])).to(self.device)
+            packed, = self._pass(self._network_input(images), allowed)
+            packed = packed.to("cpu", non_blocking=True)  # pinned host memory, behind the pass
+            arrived = None
+            if self.device.type == "cuda":
+                arrived = torch.cuda.Event()
+                arrived.record(torch.cuda.current_stream(self.device))
 
         def finish() -> list[Features]:
-            with torch.inference_mode():
-                # detection stays on the device: the same algorithm as the numpy version
-                detected = detect_keypoints_batch(scores, o.nms_radius, o.detection_threshold,
-                                                  o.max_keypoints, allowed=allowed)
-                keypoints = [keypoints for keypoints, _ in detected]
-                descriptors = self.model.desc_head.forward_batch(feature_map, keypoints)
-                # one transfer back per batch
-                packed = torch.cat([torch.cat(keypoints).float(),
-                                    torch.cat([s for _, s in detected]).float()[:, None],
-                                    descriptors.float()], dim=1).cpu().numpy()
-            out, start = [], 0
-            for points, _ in detected:
-                if len(points) == 0:
+            if arrived is not None:
+                arrived.synchronize()
+            host = packed.numpy()
+            width = 3 + self.descriptor_dim
+            out = []
+            for row in host:
+                count = int(row[0])
+                if count == 0:
                     out.append(Features.empty(self.descriptor_dim, (w, h)))
                     continue
-                rows = packed[start:start + len(points)]
-                start += len(points)
+                rows = row[1:1 + count * width].reshape(count, width)
                 out.append(Features(rows[:, :2].copy(), rows[:, 2].copy(), rows[:, 3:].copy(),
                                     (w, h)))
             return out

@@ -254,6 +254,32 @@ class SddhHead(nn.Module):
         return self._describe(sampled.reshape(c, n, m).permute(1, 0, 2))
 
 
+    def forward_fixed(self, features: torch.Tensor, keypoints_px: torch.Tensor) -> torch.Tensor:
+        """``forward`` of every image of a batch with the same number of keypoints each:
+        features (B, C, H, W), keypoints (B, K, 2) -> descriptors (B, K, C). Shapes follow
+        from the inputs' alone and nothing waits for the device, so the pass can be captured
+        in one CUDA graph with the network and the detection (``detect_keypoints_fixed``'s
+        padded rows: their descriptors are computed and dropped)."""
+        b, c, h, w = features.shape
+        count, k, m = keypoints_px.shape[1], self.kernel, self.positions
+        n = b * count
+        keypoints = keypoints_px.reshape(n, 2)
+        image = torch.arange(b, device=features.device).repeat_interleave(count * k * k)
+        corner = (keypoints.floor() - k / 2 + 1).floor().long()
+        corner_x = corner[:, 0].clamp(0, w - 1 - k)
+        corner_y = corner[:, 1].clamp(0, h - 1 - k)
+        steps = torch.arange(k, device=features.device)
+        rows = (corner_y[:, None, None] + steps[None, :, None]).expand(n, k, k).reshape(-1)
+        cols = (corner_x[:, None, None] + steps[None, None, :]).expand(n, k, k).reshape(-1)
+        patches = features[image, :, rows, cols]  # (N*K*K, C)
+        patches = patches.reshape(n, k * k, c).permute(0, 2, 1)  # (N, C, K*K) as forward's
+        grid = self._sample_grid(patches.reshape(n, -1), keypoints, h, w)
+        sampled = F.grid_sample(features, grid.reshape(b, count * m, 1, 2), mode="bilinear",
+                                align_corners=True)  # (B, C, K*M, 1)
+        sampled = sampled.reshape(b, c, count, m).permute(0, 2, 1, 3).reshape(n, c, m)
+        return self._describe(sampled).reshape(b, count, c)
+
+
 class Aliked(nn.Module):
     """Whole model with the reference's state-dict layout (for strict loading)."""
 
@@ -365,3 +391,71 @@ def detect_keypoints_batch(scores: torch.Tensor, radius: int = 2, threshold: flo
         out.append((scale * (part + 1) / 2.0, kp_scores))
         start += count
     return out
+
+
+def detect_keypoints_fixed(scores: torch.Tensor, radius: int = 2, threshold: float = 0.2,
+                           max_keypoints: int = -1, limit: int = 20000,
+                           allowed: torch.Tensor | None = None
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``detect_keypoints_batch`` with shapes that follow from the options alone and no wait
+    for the device: keypoints (B, K, 2) in pixels, their scores (B, K) and each image's
+    count (B,), K = ``max_keypoints`` (``limit`` when <= 0) or the map's size if smaller.
+    Row i's first ``counts[i]`` keypoints are image i's, in ``detect_keypoints``' order
+    (raster order, or strongest first where more than K pass the threshold); the rest are
+    padding at real pixels (finite values, to be dropped). The whole batch's detection is
+    then one CUDA graph with the network (``TorchAlikedExtractor``): the variable-size
+    version made ~140 launches and a dozen host syncs per batch of 4 street images, and the
+    features stage's feeding thread, not the GPU, set its pace. The same keypoints except
+    where equal scores tie at the cut of the K strongest (either may be taken)."""
+    b, _, h, w = scores.shape
+    nms = simple_nms(scores, radius)
+    nms[:, :, :radius] = 0
+    nms[:, :, :, :radius] = 0
+    nms[:, :, h - radius:] = 0
+    nms[:, :, :, w - radius:] = 0
+    if allowed is not None:
+        nms = torch.where(allowed[:, None], nms, torch.zeros_like(nms))
+    flat_nms, flat = nms.reshape(b, -1), scores.reshape(b, -1)
+    size = flat.shape[1]
+    positions = torch.arange(size, device=scores.device)
+    if threshold > 0:
+        k = min(max_keypoints if max_keypoints > 0 else limit, size)
+        over = flat_nms > threshold
+        # an image with nothing above the threshold takes what is above its mean score
+        cut = torch.where(over.any(dim=1), torch.full_like(flat[:, 0], threshold),
+                          flat.mean(dim=1))
+        chosen = flat_nms > cut[:, None]
+        # at a kept maximum the NMS map holds the score: its strongest are the scores'
+        values, index = torch.topk(torch.where(chosen, flat_nms, float("-inf")), k, dim=1)
+        valid = values > float("-inf")
+        counts = valid.sum(dim=1)
+        # K or fewer chosen: raster order, the padding last; more: strongest first (topk's)
+        raster = torch.where(valid, index, size + positions[:k])
+        key = torch.where((chosen.sum(dim=1) > k)[:, None], positions[:k].expand(b, k),
+                          raster)
+        index = index.gather(1, key.argsort(dim=1))
+    else:
+        k = min(max_keypoints, size)
+        index = torch.topk(flat_nms, k, dim=1).indices
+        counts = torch.full((b,), k, dtype=torch.long, device=scores.device)
+    kernel = 2 * radius + 1
+    # the sub-pixel refinement of ``detect_keypoints_batch``, over (B, K) at once
+    padded = F.pad(scores[:, 0], (radius, radius, radius, radius))
+    steps = torch.arange(kernel, device=scores.device)
+    rows = torch.div(index, w, rounding_mode="trunc")[..., None, None] + steps[:, None]
+    cols = (index % w)[..., None, None] + steps[None, :]
+    image = torch.arange(b, device=scores.device)[:, None, None, None]
+    patches = padded[image, rows, cols].reshape(b * k, -1)
+    grid_1d = torch.linspace(-radius, radius, kernel, device=scores.device)
+    dy, dx = torch.meshgrid(grid_1d, grid_1d, indexing="ij")
+    grid = torch.stack([dx.reshape(-1), dy.reshape(-1)], dim=1)
+    weights = ((patches - patches.max(dim=1).values[:, None]) / 0.1).exp()
+    residual = (weights @ grid / weights.sum(dim=1)[:, None]).reshape(b, k, 2)
+    xy = torch.stack([index % w, torch.div(index, w, rounding_mode="trunc")], 2)
+    keypoints = xy.to(scores.dtype) + residual
+    # filled on the device: a copy from the host may not be captured in a CUDA graph
+    scale = torch.stack([scores.new_full((), w - 1), scores.new_full((), h - 1)])
+    normalized = keypoints / scale * 2 - 1
+    kp_scores = F.grid_sample(scores, normalized.view(b, 1, k, 2), mode="bilinear",
+                              align_corners=True)[:, 0, 0]
+    return scale * (normalized + 1) / 2.0, kp_scores, counts
