@@ -989,52 +989,6 @@ def test_stages_share_one_torch_matcher_per_configuration():
     assert make_matcher(stricter, "cpu").options.filter_threshold == 0.2
 
 
-def test_networks_prepared_on_another_thread_are_the_ones_the_stages_get():
-    """``prepare_models`` (which the runner calls on a thread while the first stage runs)
-    builds the torch extractor and matcher into the caches that ``make_extractor`` and
-    ``make_matcher`` read: the stages get those objects, and a caller that comes while one is
-    being built waits for it instead of building another. SIFT and k-NN are left alone."""
-    pytest.importorskip("torch")
-    import threading
-    from dataclasses import replace
-
-    from cusfm_ros.pipeline import components
-    from cusfm_ros.pipeline.components import (FeatureOptions, make_extractor, make_matcher,
-                                               prepare_models)
-
-    options = FeatureOptions(backend="torch")
-    options = replace(options, extractor=replace(options.extractor, aliked=replace(
-        options.extractor.aliked, max_keypoints=777)))  # a configuration of this test only
-    built = []
-    original = components._torch_aliked
-
-    def slow_build(aliked):
-        built.append(threading.current_thread().name)
-        time.sleep(0.3)
-        return original(aliked)
-
-    components._torch_aliked = slow_build
-    try:
-        preparing = threading.Thread(target=prepare_models, args=(options, "cpu"),
-                                     name="preparing")
-        preparing.start()
-        time.sleep(0.05)
-        extractor = make_extractor(options, "cpu")  # waits for the thread's
-        preparing.join()
-    finally:
-        components._torch_aliked = original
-    assert built == ["preparing"]
-    assert extractor.options.max_keypoints == 777 and make_extractor(options, "cpu") is extractor
-    assert make_matcher(options, "cpu") is components._torch_matcher(
-        replace(options.matcher.selected, device="cpu"), options.matcher.name)
-    sift = replace(options, extractor=replace(options.extractor, name="sift"),
-                   matcher=replace(options.matcher, name="knn"))
-    before = dict(components._TORCH_MODELS)
-    prepare_models(sift, "cpu")
-    prepare_models(FeatureOptions(backend="onnx"), "cpu")
-    assert components._TORCH_MODELS == before
-
-
 def test_fixed_shape_detection_and_descriptors_equal_the_variable_ones():
     """``detect_keypoints_fixed`` and ``SddhHead.forward_fixed`` (one CUDA graph per batch in
     the torch backend) give each image the keypoints, order, scores and descriptors of

@@ -251,36 +251,3 @@ def test_a_gpu_runs_torch_compiled_from_source_is_named_with_the_fix(tmp_path, m
     with caplog.at_level(logging.WARNING, logger="cusfm_ros.pipeline.runner"):
         runner._note_source_imports(module)
     assert caplog.records == []
-
-
-def test_the_later_stages_networks_are_built_beside_the_first_stage(monkeypatch):
-    """On a GPU run the runner's work beside the first stage starts the GPU libraries on a
-    thread, which then has each later stage build its networks (``Stage.prepare``) with the
-    run's options; the first stage, which runs on the child, is not asked."""
-    torch = pytest.importorskip("torch")
-    import threading
-
-    from cusfm_ros.core import accelerator
-    from cusfm_ros.pipeline import runner
-    from cusfm_ros.pipeline.stage import Stage
-
-    prepared = []
-
-    class Recording(Stage):
-        def prepare(self, options):
-            prepared.append((self.name, options, threading.current_thread().name))
-
-    stages = tuple(type(name, (Recording,), {"name": name})() for name in ("a", "b", "c"))
-    options = type("Options", (), {"device": "cuda"})()
-    monkeypatch.setattr(runner, "open_cuda_context", lambda: None)
-    monkeypatch.setattr(runner, "cuda_torch", lambda device: torch)
-    monkeypatch.setattr(runner, "check_device", lambda device: None)
-    monkeypatch.setattr(runner, "_note_source_imports", lambda module: None)
-    monkeypatch.setattr(runner, "warm_gpu_libraries",  # this machine's operators: the CPU's
-                        lambda torch, then: accelerator.warm_gpu_libraries(torch, "cpu", then))
-    stage_runner = runner.StageRunner(stages, options)
-    stage_runner._timeline = {}
-    stage_runner._device_start(list(stages[1:]))
-    accelerator.wait_for_warm_up()
-    assert prepared == [("b", options, "cusfm_gpu_warm_up"), ("c", options, "cusfm_gpu_warm_up")]
-    assert "device_ready" in stage_runner._timeline

@@ -9,18 +9,14 @@ inputs there and its results back.
 from __future__ import annotations
 
 import ctypes
-import logging
 import sys
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from cusfm_ros.errors import ConfigError
-
-logger = logging.getLogger(__name__)
 
 
 def nvidia_gpu_present() -> bool:
@@ -55,55 +51,6 @@ def open_cuda_context() -> threading.Thread | None:
     thread = threading.Thread(target=start, name="cusfm_cuda_start", daemon=True)
     thread.start()
     return thread
-
-
-_warming: list[threading.Thread] = []
-"""The thread of ``warm_gpu_libraries``, while it may run."""
-
-
-def warm_gpu_libraries(torch, device: str = "cuda",
-                       then: Callable[[], None] | None = None) -> threading.Thread:
-    """Run a first tiny convolution, matrix product (fp32 and fp16) and attention on the GPU
-    on a thread: cuDNN's and cuBLAS's start and their first kernels' loading, which the first
-    network pass paid on the main thread (0.9 s in its convolutions and 0.5 s in its linear
-    layers, py-spy of a 100-frame run on an H100). torch's operators release the GIL, so this
-    overlaps the main thread's work until then (the first stage on its forked child, the
-    features stage's start). ``then``: more of the same kind, run on the thread once the
-    operators ran (the runner builds the stages' networks there). ``wait_for_warm_up``
-    joins it; errors are left to the networks' own first use, which reports them as
-    before."""
-    def warm() -> None:
-        functional = torch.nn.functional
-        try:
-            with torch.inference_mode():
-                image = torch.zeros(1, 3, 32, 32, device=device)
-                functional.conv2d(image, torch.zeros(8, 3, 3, 3, device=device), padding=1)
-                matrix = torch.zeros(64, 64, device=device)
-                torch.mm(matrix, matrix)
-                half = matrix.half()
-                torch.mm(half, half)
-                query = torch.zeros(1, 4, 16, 64, device=device, dtype=torch.float16)
-                functional.scaled_dot_product_attention(query, query, query)
-            done.append(device)
-            if then is not None:
-                then()
-        except Exception as exc:  # noqa: BLE001 - the networks' first use reports it
-            logger.debug("GPU warm-up stopped: %s", exc)
-
-    done: list[str] = []
-    thread = threading.Thread(target=warm, name="cusfm_gpu_warm_up", daemon=True)
-    thread.warmed = done  # the device, once every operator ran (tests)
-    thread.start()
-    _warming[:] = [thread]
-    return thread
-
-
-def wait_for_warm_up() -> None:
-    """Join ``warm_gpu_libraries``'s thread, if one runs (before a CUDA graph's capture:
-    nothing else of this process launches work while one is captured)."""
-    for thread in _warming:
-        thread.join()
-    _warming.clear()
 
 
 def cuda_torch(device: str):

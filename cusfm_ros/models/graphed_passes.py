@@ -22,8 +22,6 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
-from cusfm_ros.core.accelerator import wait_for_warm_up
-
 logger = logging.getLogger(__name__)
 
 
@@ -142,7 +140,6 @@ class GraphedPasses:
         """The graph of ``run`` on ``inputs``, which become its static inputs; None (and no
         more captures) where the capture fails, the pass then runs as it is."""
         torch = self.torch
-        wait_for_warm_up()  # nothing else of this process launches work during a capture
         try:
             if self._stream is None:
                 # the first capture's stream is every capture's: its lazily made state

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 from cusfm_ros.core.features.aliked import AlikedExtractor, AlikedOptions
@@ -119,18 +118,16 @@ def make_extractor(options: FeatureOptions, device: str = "auto"):
     if extractor.name == "xfeat":
         xfeat = replace(extractor.xfeat, device=device)
         if options.use_torch(device):
-            return _torch_model(("xfeat", xfeat), _torch_xfeat)
+            from cusfm_ros.models.torch_backend import TorchXFeatExtractor
+
+            return TorchXFeatExtractor(xfeat)
         return XFeatExtractor(ensure_models(options.model_dir), xfeat)
     aliked = replace(extractor.aliked, device=device)
     if options.use_torch(device):
-        return _torch_model(("aliked", aliked), _torch_aliked)
+        from cusfm_ros.models.torch_backend import TorchAlikedExtractor
+
+        return TorchAlikedExtractor(aliked)
     return AlikedExtractor(ensure_models(options.model_dir), aliked)
-
-
-def _torch_aliked(options):
-    from cusfm_ros.models.torch_backend import TorchAlikedExtractor
-
-    return TorchAlikedExtractor(options)
 
 
 def make_matcher(options: FeatureOptions, device: str = "auto"):
@@ -144,51 +141,22 @@ def make_matcher(options: FeatureOptions, device: str = "auto"):
     return onnx(ensure_models(options.model_dir), learned)
 
 
-def _torch_xfeat(options):
-    from cusfm_ros.models.torch_backend import TorchXFeatExtractor
-
-    return TorchXFeatExtractor(options)
-
-
-_TORCH_MODELS: dict = {}
-_TORCH_MODELS_LOCK = threading.Lock()
-
-
-def _torch_model(key: tuple, build: Callable):
-    """One torch network per configuration and process (``key``: its name and options),
-    built by ``build(options)`` under a lock, so that a caller waits for one being built
-    on another thread (``prepare_models``) instead of building its own. The matcher is
-    shared by the stages that match (loops, pose graph, matching, localization): each built
-    its own before, which loaded the weights onto the GPU again (~0.35 s) and ran every pass
-    shape uncaptured once and captured it once more before the CUDA graphs replayed
-    (``GraphedPasses``)."""
-    with _TORCH_MODELS_LOCK:
-        if key not in _TORCH_MODELS:
-            _TORCH_MODELS[key] = build(key[-1])
-        return _TORCH_MODELS[key]
+_TORCH_MATCHERS: dict = {}
+_TORCH_MATCHERS_LOCK = threading.Lock()
 
 
 def _torch_matcher(options, name: str):
-    def build(options):
-        from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
+    """One torch matcher per configuration and process, shared by the stages that match
+    (loops, pose graph, matching, localization): each built its own before, which loaded the
+    weights onto the GPU again (~0.35 s) and ran every pass shape uncaptured once and
+    captured it once more before the CUDA graphs replayed (``GraphedPasses``)."""
+    key = (name, options)
+    with _TORCH_MATCHERS_LOCK:
+        if key not in _TORCH_MATCHERS:
+            from cusfm_ros.models.torch_backend import TorchLightGlueMatcher
 
-        return TorchLightGlueMatcher(options, name)
-
-    return _torch_model((name, options), build)
-
-
-def prepare_models(options: FeatureOptions, device: str, extractor: bool = True,
-                   matcher: bool = True) -> None:
-    """Build the torch extractor and matcher that ``make_extractor`` and ``make_matcher``
-    will return for these options (their weights loaded onto the device), where the torch
-    backend runs them; nothing otherwise (SIFT, k-NN and ONNX Runtime are built where used).
-    The runner calls it on a thread while the first stage works on its forked child."""
-    if not options.use_torch(device):
-        return
-    if extractor and options.extractor.name != "sift":
-        make_extractor(options, device)
-    if matcher and options.matcher.name != "knn":
-        make_matcher(options, device)
+            _TORCH_MATCHERS[key] = TorchLightGlueMatcher(options, name)
+        return _TORCH_MATCHERS[key]
 
 
 class LazyMatcher:

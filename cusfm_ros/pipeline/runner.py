@@ -29,13 +29,12 @@ import shutil
 import sys
 import time
 from collections.abc import Callable
-from functools import partial
 from pathlib import Path
 from typing import Any
 
 from cusfm_ros import __version__
 from cusfm_ros.core.accelerator import (check_device, cuda_torch, nvidia_gpu_present,
-                                        open_cuda_context, warm_gpu_libraries)
+                                        open_cuda_context)
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.digest import DigestCache
@@ -213,8 +212,7 @@ class StageRunner:
         first = next(stage for stage in self.stages if stage.name in steps)
         # torch's import, 2.5-3.6 s of every GPU run, overlaps a first stage that needs no
         # GPU library (the keyframes), which then runs on a forked child
-        later = [stage for stage in self.stages if stage.name in steps and stage is not first]
-        beside = partial(self._device_start, later) if self._start_beside(first) else None
+        beside = self._device_start if self._start_beside(first) else None
         if beside is None:
             check_device(self.options.device)
             if "torch" in sys.modules:  # None on a CPU run, or where torch sees no GPU
@@ -263,23 +261,15 @@ class StageRunner:
             return report
 
     # ----------------------------------------------------------------------------- a stage
-    def _device_start(self, later: list[Stage]) -> None:
+    def _device_start(self) -> None:
         """What runs beside the first stage: torch's import (which ``check_device`` does for
         ``cuda`` and a later stage would do for ``auto``) and the device's check. The CUDA
         driver's start and the GPU's context are made on a thread meanwhile
-        (``open_cuda_context``); once torch is in, cuDNN and cuBLAS start on another, which
-        then builds the ``later`` stages' networks (``Stage.prepare``), while this process
-        waits for the first stage's child (``warm_gpu_libraries``)."""
+        (``open_cuda_context``)."""
         starting = open_cuda_context()
         torch = cuda_torch(self.options.device)
         if starting is not None:
             starting.join()
-        if torch is not None:
-            def prepare() -> None:
-                for stage in later:
-                    stage.prepare(self.options)
-
-            warm_gpu_libraries(torch, then=prepare)
         check_device(self.options.device)
         _note_source_imports(torch)
         _load_native_runtimes()

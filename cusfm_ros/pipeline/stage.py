@@ -64,11 +64,6 @@ class Stage:
     """Modules the stage's worker processes need: the runner starts the fork server with
     the run, and it imports them while the earlier stages work (``start_process_server``)."""
 
-    def prepare(self, options: Any) -> None:
-        """Build ahead what this stage's first use of the device builds (its networks, their
-        weights on the GPU), into the caches it reads them from: the runner calls it on a
-        thread while the first stage works on its forked child. Nothing by default."""
-
     def external_inputs(self, context: StageContext) -> dict[str, Any]:
         """Identities of inputs outside the run directory (the bag, an extrinsics file)."""
         return {}

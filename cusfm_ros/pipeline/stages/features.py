@@ -19,7 +19,7 @@ import numpy as np
 from cusfm_ros.core.features.types import Features
 from cusfm_ros.errors import CusfmError
 from cusfm_ros.io.feature_store import FeatureStore
-from cusfm_ros.pipeline.components import FeatureOptions, make_extractor, prepare_models
+from cusfm_ros.pipeline.components import FeatureOptions, make_extractor
 from cusfm_ros.pipeline.parallel import background_thread, ordered_map, thread_count
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
@@ -151,9 +151,6 @@ class FeaturesStage(Stage):
     reads = ("features.extractor",)
     inputs = ("keyframes_dir",)
     outputs = ("features",)
-
-    def prepare(self, options) -> None:
-        prepare_models(options.features, options.device, matcher=False)
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options

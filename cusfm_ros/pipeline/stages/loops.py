@@ -24,8 +24,7 @@ from cusfm_ros.io.bow_file import read_bows, write_bows
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import write_loops
 from cusfm_ros.io.vocabulary_file import load_vocabulary
-from cusfm_ros.pipeline.components import (LazyMatcher, prepare_models,
-                                          with_batched_matches)
+from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.parallel import ordered_map
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
@@ -179,9 +178,6 @@ class LoopsStage(Stage):
     optional_inputs = ("vocabulary_bows",)
     outputs = ("loops", "loop_bows")
     version = 4  # 2: loops/bows.npz; 3: rows from vocabulary/bows.npz; 4: by stereo pair
-
-    def prepare(self, options) -> None:
-        prepare_models(options.features, options.device, extractor=False)
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options

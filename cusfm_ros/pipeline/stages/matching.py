@@ -18,8 +18,7 @@ from cusfm_ros.core.relpose.two_view import essential_inliers
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.pairs_file import read_pairs
-from cusfm_ros.pipeline.components import (LazyMatcher, prepare_models,
-                                          with_batched_matches)
+from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.parallel import ordered_map
@@ -112,9 +111,6 @@ class MatchingStage(Stage):
     reads = ("matching", "features.matcher", "seed")
     inputs = ("keyframes", "pairs", "features")
     outputs = ("verified_matches",)
-
-    def prepare(self, options) -> None:
-        prepare_models(options.features, options.device, extractor=False)
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
