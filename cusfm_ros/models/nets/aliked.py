@@ -264,7 +264,8 @@ class SddhHead(nn.Module):
         count, k, m = keypoints_px.shape[1], self.kernel, self.positions
         n = b * count
         keypoints = keypoints_px.reshape(n, 2)
-        image = torch.arange(b, device=features.device).repeat_interleave(count * k * k)
+        image = torch.arange(b, device=features.device)[:, None].expand(b, count * k * k)
+        image = image.reshape(-1)
         corner = (keypoints.floor() - k / 2 + 1).floor().long()
         corner_x = corner[:, 0].clamp(0, w - 1 - k)
         corner_y = corner[:, 1].clamp(0, h - 1 - k)
