@@ -156,3 +156,17 @@ def test_pixel_size_in_normalized_units_matches_the_focal_length_at_the_centre(c
     off_axis = centre + [0.3 * camera.height, 0.0]  # ~25-60 degrees off the axis
     # no lens here shrinks normalized coordinates (tan of the angle) off the axis
     assert camera.normalized_per_px(off_axis)[0] >= scale * (1 - 1e-9)
+
+
+def test_pinhole_unprojection_is_the_newton_iterations_result_exactly():
+    """The pinhole's closed form gives the bits the base class's Newton iteration gives for
+    no distortion (the verification threads use the closed form)."""
+    from cusfm_ros.core.cameras.base import PerspectiveCamera
+    from cusfm_ros.core.cameras.pinhole import PinholeCamera
+
+    camera = PinholeCamera(1241, 376, fx=620.5, fy=610.25, cx=620.0, cy=187.5)
+    uv = np.random.default_rng(0).random((500, 2)) * [1241, 376]
+    closed = camera.undistort_normalized(uv)
+    assert closed.shape == (500, 2)
+    np.testing.assert_array_equal(closed, PerspectiveCamera.undistort_normalized(camera, uv))
+    np.testing.assert_array_equal(camera.undistort_normalized(uv[0]), closed[:1])
