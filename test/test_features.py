@@ -127,6 +127,46 @@ def test_fused_attention_equals_the_exported_graph(aliked, motorcycle, monkeypat
         np.testing.assert_array_equal(filter_matches(scores, 0.1)[0].numpy(), matches.numpy())
 
 
+def test_padded_attention_without_a_mask_equals_the_masked_one(aliked, motorcycle,
+                                                                monkeypatch):
+    """``fuse_attention(unmasked=True)``: a padded batch through the fused kernel without an
+    attention mask (the padded keys' logits pushed to -1e4 by one more channel) gives the
+    masked pass's log assignment and matches, both images padded."""
+    from cusfm_ros.models.build import load_lightglue
+    from cusfm_ros.models.nets.lightglue import filter_matches, normalize_keypoints
+
+    f0, f1 = aliked.extract(motorcycle[0]), aliked.extract(motorcycle[1])
+    k0 = normalize_keypoints(torch.from_numpy(f0.keypoints_px)[None], 480, 320)
+    k1 = normalize_keypoints(torch.from_numpy(f1.keypoints_px)[None], 480, 320)
+    d0, d1 = torch.from_numpy(f0.descriptors)[None], torch.from_numpy(f1.descriptors)[None]
+    inputs, masks = [], []
+    for keypoints, descriptors, pad in ((k0, d0, 11), (k1, d1, 37)):
+        inputs += [torch.cat([t, torch.rand(1, pad, t.shape[2])], 1)  # padding is not 0 here
+                   for t in (keypoints, descriptors)]
+        masks.append(torch.arange(keypoints.shape[1] + pad)[None] < keypoints.shape[1])
+    k0p, d0p, k1p, d1p = inputs
+    masked_net = load_lightglue().fuse_attention()
+    unmasked_net = load_lightglue().fuse_attention(unmasked=True)
+    calls, sdpa = [], torch.nn.functional.scaled_dot_product_attention
+    monkeypatch.setattr(torch.nn.functional, "scaled_dot_product_attention",
+                        lambda *a, **k: calls.append(k.get("attn_mask") is None) or sdpa(*a, **k))
+    with torch.no_grad():
+        masked = masked_net(k0p, k1p, d0p, d1p, *masks)
+        assert calls == [False] * 36
+        calls.clear()
+        unmasked = unmasked_net(k0p, k1p, d0p, d1p, *masks)
+        assert calls == [True] * 36
+    rows = torch.cat([torch.arange(len(f0)), torch.tensor([masked.shape[1] - 1])])
+    cols = torch.cat([torch.arange(len(f1)), torch.tensor([masked.shape[2] - 1])])
+    real_masked, real_unmasked = masked[0][rows][:, cols], unmasked[0][rows][:, cols]
+    np.testing.assert_allclose(real_unmasked.exp().numpy(), real_masked.exp().numpy(),
+                               atol=1e-5)
+    matches, _ = filter_matches(real_masked[None], 0.1)
+    assert len(matches) > 200
+    np.testing.assert_array_equal(filter_matches(real_unmasked[None], 0.1)[0].numpy(),
+                                  matches.numpy())
+
+
 @pytest.mark.parametrize("threshold, max_keypoints", [(0.2, -1), (0.2, 50), (0.0, 300)])
 def test_numpy_detection_equals_torch(rng, threshold, max_keypoints):
     from cusfm_ros.models.nets.aliked import detect_keypoints as torch_detect

@@ -265,7 +265,8 @@ class TorchLightGlueMatcher:
         self.torch = torch
         self.options = options
         self.device = _device(options.device)
-        self.model = load_lightglue(weights).fuse_attention().to(self.device)
+        self.model = load_lightglue(weights).fuse_attention(
+            unmasked=options.unmasked_attention).to(self.device)
         self.steps = _TorchLayerSteps(self.model)
         self.resident = DeviceFeatures(torch, self.device)
         self.graphed = None

@@ -51,6 +51,10 @@ class LightGlueOptions:
     pads both sides of a pass to one of a few sizes for it (``graphed_passes.graph_side`` of
     its largest image: at most 1/8 more points than that, masked); elsewhere, and with
     ``depth_confidence``, it has no effect."""
+    unmasked_attention: bool = False
+    """The torch backend's fused attention over padded batches without an attention mask:
+    padded keys get a logit of -1e4 through one more channel (``nets.lightglue``), so that
+    the flash kernel, which takes no mask, runs instead of the memory-efficient one."""
     device: str = "auto"
     threads: int = 0
 
