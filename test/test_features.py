@@ -815,8 +815,9 @@ def test_reduced_precision_lightglue_on_cuda_keeps_the_fp32_matches(motorcycle):
 @pytest.mark.gpu
 def test_aliked_replayed_as_a_cuda_graph_gives_the_features_of_the_uncaptured_network(
         motorcycle):
-    """A batch shape's first pass runs as it is, its second is captured and replayed, later
-    ones replay with new images: each batch's features equal those without graphs."""
+    """A batch shape's first pass (network, detection and descriptors) runs as it is, its
+    second is captured and replayed, later ones replay with new images: each batch's
+    features equal those without graphs."""
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor
@@ -826,14 +827,14 @@ def test_aliked_replayed_as_a_cuda_graph_gives_the_features_of_the_uncaptured_ne
     graphed = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda"))
     plain = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda",
                                                cuda_graphs=False))
-    assert plain.dense is plain.model.dense
+    assert plain._pass == plain._whole_pass  # no graphs
     for batch in batches:
         for ours, theirs in zip(graphed.extract_batch(batch), plain.extract_batch(batch)):
             assert len(ours) > 300
             np.testing.assert_allclose(ours.keypoints_px, theirs.keypoints_px, atol=1e-4)
             np.testing.assert_allclose(ours.scores, theirs.scores, atol=1e-5)
             np.testing.assert_allclose(ours.descriptors, theirs.descriptors, atol=1e-5)
-    assert len(graphed.dense) == 1 and graphed.dense.replays == 2
+    assert len(graphed._pass) == 1 and graphed._pass.replays == 2
 
 
 @pytest.mark.gpu
