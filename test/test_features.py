@@ -5,6 +5,7 @@ import json
 import time
 import subprocess
 import sys
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -813,21 +814,23 @@ def test_reduced_precision_lightglue_on_cuda_keeps_the_fp32_matches(motorcycle):
 
 
 @pytest.mark.gpu
+@pytest.mark.parametrize("fixed_shape_pass", [False, True])
 def test_aliked_replayed_as_a_cuda_graph_gives_the_features_of_the_uncaptured_network(
-        motorcycle):
-    """A batch shape's first pass (network, detection and descriptors) runs as it is, its
-    second is captured and replayed, later ones replay with new images: each batch's
-    features equal those without graphs."""
+        motorcycle, fixed_shape_pass):
+    """A batch shape's first pass (the network, or with ``fixed_shape_pass`` the network,
+    the detection and the descriptors) runs as it is, its second is captured and replayed,
+    later ones replay with new images: each batch's features equal those without graphs."""
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor
 
     left, right = motorcycle
     batches = [[left, right, right, left], [right, left, left, right], [left, left, right, right]]
-    graphed = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda"))
+    graphed = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda",
+                                                 fixed_shape_pass=fixed_shape_pass))
     plain = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda",
                                                cuda_graphs=False))
-    assert plain._pass == plain._whole_pass  # no graphs
+    assert plain._pass == plain.model.dense  # no graphs, the variable-size detection
     for batch in batches:
         for ours, theirs in zip(graphed.extract_batch(batch), plain.extract_batch(batch)):
             assert len(ours) > 300
@@ -1028,6 +1031,30 @@ def test_stages_share_one_torch_matcher_per_configuration():
         options.matcher.lightglue, filter_threshold=0.2)))
     assert make_matcher(stricter, "cpu") is not first
     assert make_matcher(stricter, "cpu").options.filter_threshold == 0.2
+
+
+def test_aliked_fixed_shape_pass_gives_the_variable_passs_features(motorcycle):
+    """``fixed_shape_pass``: the torch extractor's whole pass with fixed shapes gives each
+    image the keypoints, scores and descriptors of the variable-size detection, a capped
+    image and an image whose mask allows nothing included."""
+    from cusfm_ros.models.torch_backend import TorchAlikedExtractor
+
+    left, right = motorcycle
+    nothing = np.zeros(left.shape[:2], np.uint8)
+    for options in (AlikedOptions(device="cpu"), AlikedOptions(device="cpu", max_keypoints=300)):
+        variable = TorchAlikedExtractor(options)
+        fixed = TorchAlikedExtractor(replace(options, fixed_shape_pass=True))
+        fixed.model = variable.model  # the same weights, loaded once
+        for image, mask in ((left, None), (right, None), (left, nothing)):
+            ours, theirs = fixed.extract(image, mask), variable.extract(image, mask)
+            assert len(ours) == len(theirs)
+            if mask is not None:
+                assert len(ours) == 0 and ours.descriptors.shape == (0, 128)
+                continue
+            assert len(ours) > 250
+            np.testing.assert_allclose(ours.keypoints_px, theirs.keypoints_px, atol=1e-5)
+            np.testing.assert_allclose(ours.scores, theirs.scores, atol=1e-6)
+            np.testing.assert_allclose(ours.descriptors, theirs.descriptors, atol=1e-5)
 
 
 def test_fixed_shape_detection_and_descriptors_equal_the_variable_ones():

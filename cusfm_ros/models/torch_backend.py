@@ -28,7 +28,7 @@ from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.build import load_aliked, load_lightglue, load_xfeat
 from cusfm_ros.models.device_features import DeviceFeatures, split
 from cusfm_ros.models.graphed_passes import GraphedPasses, graph_side
-from cusfm_ros.models.nets.aliked import detect_keypoints_fixed
+from cusfm_ros.models.nets.aliked import detect_keypoints_batch, detect_keypoints_fixed
 from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
 from cusfm_ros.models.nets.xfeat import detect_and_describe
 
@@ -78,14 +78,16 @@ class TorchAlikedExtractor:
         self.device = _device(options.device)
         self.model = load_aliked().to(self.device)
         self.batch_size = options.batch_size if self.device.type == "cuda" else 1
-        self._pass = self._whole_pass
+        self._pass = self._whole_pass if options.fixed_shape_pass else self.model.dense
         if self.device.type == "cuda" and options.cuda_graphs:
-            # the network, the detection and the descriptors, one graph per batch shape; a
-            # replay's output (the batch's keypoints, ~1 MB an image) is copied out of the
-            # graph's: the next batch's pass runs before this one is read back
-            self._pass = GraphedPasses(torch, self._whole_pass, name="aliked")
-        # one batch at a time from its pass to the copy of the graph's output: a replay
-        # overwrites it, and the batch before may not have queued its copy on it yet
+            # one graph per batch shape: of the dense network, or with ``fixed_shape_pass``
+            # of the network, the detection and the descriptors. A replay's outputs are
+            # copied out of the graph's (the dense network's ~1 GB of feature maps a batch,
+            # ~0.5 ms; the whole pass's keypoints ~1 MB an image): the next batch's pass runs
+            # before this one is finished
+            self._pass = GraphedPasses(torch, self._pass, name="aliked")
+        # one batch at a time from its pass to the copy of the graph's outputs: a replay
+        # overwrites them, and the batch before may not have queued its copy on them yet
         self._lock = threading.Lock()
 
     def _whole_pass(self, images, allowed) -> tuple:
@@ -138,11 +140,14 @@ class TorchAlikedExtractor:
     def submit_batch(self, images: Sequence[np.ndarray],
                      masks: Sequence[np.ndarray] | None = None
                      ) -> Callable[[], list[Features]]:
-        """``extract_batch`` in two halves: the whole pass (network, detection, descriptors;
-        one CUDA graph) and the copy of its result to the host are launched now, and the
-        function returned waits for the copy and splits it per image. The features stage
-        launches a batch before it finishes the one before, so the GPU runs a pass while
-        the CPU finishes the last batch."""
+        """``extract_batch`` in two halves: the dense network's pass is launched on the
+        device now (its outputs copied out of the CUDA graph's, which the next replay
+        overwrites), and the function returned runs the detection (a host sync), the
+        descriptors and the copy back; with ``fixed_shape_pass`` the whole pass and the
+        copy of its result are launched now, and the function waits for the copy. The
+        features stage launches a batch before it finishes the one before, so the GPU runs a
+        pass while the CPU finishes the last batch: one batch at a time, the GPU idled
+        through each batch's host work and the main thread waited through each pass."""
         torch = self.torch
         images = [checked_image(image, MIN_IMAGE_PX) for image in images]
         sizes = {image.shape[:2] for image in images}
@@ -159,7 +164,11 @@ class TorchAlikedExtractor:
         with torch.inference_mode(), self._lock:
             allowed = None if masks is None else torch.from_numpy(
                 np.stack([np.asarray(mask) > 0 for mask in masks])).to(self.device)
-            packed, = self._pass(self._network_input(images), allowed)
+            network_input = self._network_input(images)
+            if not self.options.fixed_shape_pass:
+                scores, feature_map = self._pass(network_input)
+                return lambda: self._finish_variable(scores, feature_map, allowed, (w, h))
+            packed, = self._pass(network_input, allowed)
             packed = packed.to("cpu", non_blocking=True)  # pinned host memory, behind the pass
             arrived = None
             if self.device.type == "cuda":
@@ -169,10 +178,9 @@ class TorchAlikedExtractor:
         def finish() -> list[Features]:
             if arrived is not None:
                 arrived.synchronize()
-            host = packed.numpy()
             width = 3 + self.descriptor_dim
             out = []
-            for row in host:
+            for row in packed.numpy():
                 count = int(row[0])
                 if count == 0:
                     out.append(Features.empty(self.descriptor_dim, (w, h)))
@@ -182,6 +190,31 @@ class TorchAlikedExtractor:
                                     (w, h)))
             return out
         return finish
+
+    def _finish_variable(self, scores, feature_map, allowed, size: tuple[int, int]
+                         ) -> list[Features]:
+        """The detection (one host sync for the counts), the descriptors and one copy back
+        of a batch whose dense pass was launched (without ``fixed_shape_pass``)."""
+        o, torch = self.options, self.torch
+        with torch.inference_mode():
+            # detection stays on the device: the same algorithm as the numpy version
+            detected = detect_keypoints_batch(scores, o.nms_radius, o.detection_threshold,
+                                              o.max_keypoints, allowed=allowed)
+            keypoints = [keypoints for keypoints, _ in detected]
+            descriptors = self.model.desc_head.forward_batch(feature_map, keypoints)
+            packed = torch.cat([torch.cat(keypoints).float(),
+                                torch.cat([s for _, s in detected]).float()[:, None],
+                                descriptors.float()], dim=1).cpu().numpy()
+        out, start = [], 0
+        for points, _ in detected:
+            if len(points) == 0:
+                out.append(Features.empty(self.descriptor_dim, size))
+                continue
+            rows = packed[start:start + len(points)]
+            start += len(points)
+            out.append(Features(rows[:, :2].copy(), rows[:, 2].copy(), rows[:, 3:].copy(),
+                                size))
+        return out
 
 
 class TorchXFeatExtractor:

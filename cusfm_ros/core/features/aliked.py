@@ -35,6 +35,12 @@ class AlikedOptions:
     cuda_graphs: bool = True
     """The torch backend on a GPU replays the dense network as a CUDA graph for a batch shape
     it has run before (one launch instead of ~100 from Python); elsewhere no effect."""
+    fixed_shape_pass: bool = False
+    """The torch backend runs the detection and the descriptors with shapes fixed by these
+    options (``max_keypoints`` rows an image, the padding dropped on the host), so that a
+    batch's whole pass is one CUDA graph and one copy back, where the detection's
+    variable sizes cost ~140 launches and a dozen host syncs per batch. The same features
+    (tested on CPU); off by default until measured on a GPU."""
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:

@@ -364,6 +364,8 @@ def detect_keypoints_batch(scores: torch.Tensor, radius: int = 2, threshold: flo
         k = min(max_keypoints, flat_nms.shape[1])
         chosen = list(torch.topk(flat_nms, k, dim=1).indices)
     counts = [len(c) for c in chosen]
+    if sum(counts) == 0:  # (a mask that allows nothing, blank images: no patch to refine)
+        return [(scores.new_zeros((0, 2)), scores.new_zeros((0,)))] * b
     image = torch.repeat_interleave(torch.arange(b, device=scores.device),
                                     torch.tensor(counts, device=scores.device))
     indices = torch.cat(chosen)
