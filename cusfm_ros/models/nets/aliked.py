@@ -216,6 +216,23 @@ class SddhHead(nn.Module):
         descriptors = torch.einsum("ncp,pcd->nd", sampled, self.agg_weights)
         return F.normalize(descriptors, p=2, dim=1)
 
+    def _batch_grid(self, features: torch.Tensor, image: torch.Tensor,
+                    keypoints: torch.Tensor) -> torch.Tensor:
+        """``_sample_grid`` of keypoints (N, 2) on feature maps ``image`` (N,) of a batch
+        (B, C, H, W): each keypoint's K x K patch gathered with its image index."""
+        _, c, h, w = features.shape
+        n, k = keypoints.shape[0], self.kernel
+        corner = (keypoints.floor() - k / 2 + 1).floor().long()
+        corner_x = corner[:, 0].clamp(0, w - 1 - k)
+        corner_y = corner[:, 1].clamp(0, h - 1 - k)
+        steps = torch.arange(k, device=features.device)
+        rows = (corner_y[:, None, None] + steps[None, :, None]).expand(n, k, k).reshape(-1)
+        cols = (corner_x[:, None, None] + steps[None, None, :]).expand(n, k, k).reshape(-1)
+        patch_image = image[:, None].expand(n, k * k).reshape(-1)
+        patches = features[patch_image, :, rows, cols]  # (N*K*K, C)
+        patches = patches.reshape(n, k * k, c).permute(0, 2, 1)  # (N, C, K*K) as forward's
+        return self._sample_grid(patches.reshape(n, -1), keypoints, h, w)
+
     def forward_batch(self, features: torch.Tensor, keypoints_px: list[torch.Tensor]
                       ) -> torch.Tensor:
         """``forward`` of each image of a batch in one pass (the torch backend's): features
@@ -225,24 +242,15 @@ class SddhHead(nn.Module):
         (which the ONNX export keeps), over every keypoint at once: patches are gathered
         with each keypoint's image index, and the deformable samples take one
         ``grid_sample`` over the batch, each image's rows padded to the largest."""
-        b, c, h, w = features.shape
+        b, c = features.shape[:2]
         counts = [int(k.shape[0]) for k in keypoints_px]
         if sum(counts) == 0:
             return features.new_zeros((0, c))
         keypoints = torch.cat(keypoints_px)
-        n, k, m = keypoints.shape[0], self.kernel, self.positions
+        n, m = keypoints.shape[0], self.positions
         image = torch.repeat_interleave(torch.arange(b), torch.tensor(counts)).to(
             features.device, non_blocking=True)
-        corner = (keypoints.floor() - k / 2 + 1).floor().long()
-        corner_x = corner[:, 0].clamp(0, w - 1 - k)
-        corner_y = corner[:, 1].clamp(0, h - 1 - k)
-        steps = torch.arange(k, device=features.device)
-        rows = (corner_y[:, None, None] + steps[None, :, None]).expand(n, k, k).reshape(-1)
-        cols = (corner_x[:, None, None] + steps[None, None, :]).expand(n, k, k).reshape(-1)
-        patches = features[image.repeat_interleave(k * k), :, rows, cols]  # (N*K*K, C)
-        patches = patches.reshape(n, k * k, c).permute(0, 2, 1)  # (N, C, K*K) as forward's
-        grid = self._sample_grid(patches.reshape(n, -1), keypoints, h, w)
-        grid = grid.reshape(n * m, 2)
+        grid = self._batch_grid(features, image, keypoints).reshape(n * m, 2)
         padded = grid.new_zeros((b, max(counts) * m, 1, 2))
         start = 0
         for i, count in enumerate(counts):
@@ -253,28 +261,17 @@ class SddhHead(nn.Module):
                             dim=1)  # (C, N*M)
         return self._describe(sampled.reshape(c, n, m).permute(1, 0, 2))
 
-
     def forward_fixed(self, features: torch.Tensor, keypoints_px: torch.Tensor) -> torch.Tensor:
         """``forward`` of every image of a batch with the same number of keypoints each:
         features (B, C, H, W), keypoints (B, K, 2) -> descriptors (B, K, C). Shapes follow
         from the inputs' alone and nothing waits for the device, so the pass can be captured
         in one CUDA graph with the network and the detection (``detect_keypoints_fixed``'s
         padded rows: their descriptors are computed and dropped)."""
-        b, c, h, w = features.shape
-        count, k, m = keypoints_px.shape[1], self.kernel, self.positions
+        b, c = features.shape[:2]
+        count, m = keypoints_px.shape[1], self.positions
         n = b * count
-        keypoints = keypoints_px.reshape(n, 2)
-        image = torch.arange(b, device=features.device)[:, None].expand(b, count * k * k)
-        image = image.reshape(-1)
-        corner = (keypoints.floor() - k / 2 + 1).floor().long()
-        corner_x = corner[:, 0].clamp(0, w - 1 - k)
-        corner_y = corner[:, 1].clamp(0, h - 1 - k)
-        steps = torch.arange(k, device=features.device)
-        rows = (corner_y[:, None, None] + steps[None, :, None]).expand(n, k, k).reshape(-1)
-        cols = (corner_x[:, None, None] + steps[None, None, :]).expand(n, k, k).reshape(-1)
-        patches = features[image, :, rows, cols]  # (N*K*K, C)
-        patches = patches.reshape(n, k * k, c).permute(0, 2, 1)  # (N, C, K*K) as forward's
-        grid = self._sample_grid(patches.reshape(n, -1), keypoints, h, w)
+        image = torch.arange(b, device=features.device)[:, None].expand(b, count).reshape(-1)
+        grid = self._batch_grid(features, image, keypoints_px.reshape(n, 2))
         sampled = F.grid_sample(features, grid.reshape(b, count * m, 1, 2), mode="bilinear",
                                 align_corners=True)  # (B, C, K*M, 1)
         sampled = sampled.reshape(b, c, count, m).permute(0, 2, 1, 3).reshape(n, c, m)
@@ -325,6 +322,50 @@ def detect_keypoints(scores: torch.Tensor, radius: int = 2, threshold: float = 0
                                   None if allowed is None else allowed[None])[0]
 
 
+def _maxima(scores: torch.Tensor, radius: int, allowed: torch.Tensor | None
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, H*W) each: the NMS map, zero within ``radius`` of the border and where
+    ``allowed`` (B, H, W) is False, and the scores."""
+    b, _, h, w = scores.shape
+    nms = simple_nms(scores, radius)
+    nms[:, :, :radius] = 0
+    nms[:, :, :, :radius] = 0
+    nms[:, :, h - radius:] = 0
+    nms[:, :, :, w - radius:] = 0
+    if allowed is not None:
+        nms = torch.where(allowed[:, None], nms, torch.zeros_like(nms))
+    return nms.reshape(b, -1), scores.reshape(b, -1)
+
+
+def _cut(flat_nms: torch.Tensor, flat: torch.Tensor, threshold: float) -> torch.Tensor:
+    """(B,) the score a keypoint must exceed: ``threshold``, or an image's mean score where
+    nothing is above it."""
+    over = flat_nms > threshold
+    return torch.where(over.any(dim=1), torch.full_like(flat[:, 0], threshold),
+                       flat.mean(dim=1))
+
+
+def _refined(scores: torch.Tensor, image: torch.Tensor, indices: torch.Tensor, radius: int
+             ) -> torch.Tensor:
+    """(N, 2) sub-pixel keypoints of the maxima at flat ``indices`` of maps ``image``: the
+    soft-argmax over each (2r+1)^2 neighbourhood, zeros outside the map (what F.unfold
+    gives, gathered at the keypoints only instead of unfolded over every pixel)."""
+    w = scores.shape[3]
+    kernel = 2 * radius + 1
+    padded = F.pad(scores[:, 0], (radius, radius, radius, radius))
+    steps = torch.arange(kernel, device=scores.device)
+    rows = (torch.div(indices, w, rounding_mode="trunc")[:, None, None] + steps[None, :, None])
+    cols = (indices % w)[:, None, None] + steps[None, None, :]
+    patches = padded[image[:, None, None], rows, cols].reshape(len(indices), -1)
+    grid_1d = torch.linspace(-radius, radius, kernel, device=scores.device)
+    dy, dx = torch.meshgrid(grid_1d, grid_1d, indexing="ij")
+    grid = torch.stack([dx.reshape(-1), dy.reshape(-1)], dim=1)
+    weights = ((patches - patches.max(dim=1).values[:, None]) / 0.1).exp()
+    residual = weights @ grid / weights.sum(dim=1)[:, None]
+    xy = torch.stack([indices % w, torch.div(indices, w, rounding_mode="trunc")], 1)
+    return xy.to(scores.dtype) + residual
+
+
 def detect_keypoints_batch(scores: torch.Tensor, radius: int = 2, threshold: float = 0.2,
                            max_keypoints: int = -1, limit: int = 20000,
                            allowed: torch.Tensor | None = None
@@ -337,19 +378,9 @@ def detect_keypoints_batch(scores: torch.Tensor, radius: int = 2, threshold: flo
     image at a time, the GPU waited on the CPU between images. ``allowed``: (B, H, W) bool.
     """
     b, _, h, w = scores.shape
-    nms = simple_nms(scores, radius)
-    nms[:, :, :radius] = 0
-    nms[:, :, :, :radius] = 0
-    nms[:, :, h - radius:] = 0
-    nms[:, :, :, w - radius:] = 0
-    if allowed is not None:
-        nms = torch.where(allowed[:, None], nms, torch.zeros_like(nms))
-    flat_nms, flat = nms.reshape(b, -1), scores.reshape(b, -1)
+    flat_nms, flat = _maxima(scores, radius, allowed)
     if threshold > 0:
-        over = flat_nms > threshold
-        # an image with nothing above the threshold takes what is above its mean score
-        cut = torch.where(over.any(dim=1), torch.full_like(flat[:, 0], threshold),
-                          flat.mean(dim=1))
+        cut = _cut(flat_nms, flat, threshold)
         image, index = (flat_nms > cut[:, None]).nonzero(as_tuple=True)  # raster order
         counts = torch.bincount(image, minlength=b).tolist()
         cap = max_keypoints if max_keypoints > 0 else limit
@@ -368,22 +399,7 @@ def detect_keypoints_batch(scores: torch.Tensor, radius: int = 2, threshold: flo
         return [(scores.new_zeros((0, 2)), scores.new_zeros((0,)))] * b
     image = torch.repeat_interleave(torch.arange(b, device=scores.device),
                                     torch.tensor(counts, device=scores.device))
-    indices = torch.cat(chosen)
-    kernel = 2 * radius + 1
-    # each keypoint's (2r+1)^2 neighbourhood, zeros outside the map: what F.unfold gives,
-    # gathered at the keypoints only instead of unfolded over every pixel
-    padded = F.pad(scores[:, 0], (radius, radius, radius, radius))
-    steps = torch.arange(kernel, device=scores.device)
-    rows = (torch.div(indices, w, rounding_mode="trunc")[:, None, None] + steps[None, :, None])
-    cols = (indices % w)[:, None, None] + steps[None, None, :]
-    patches = padded[image[:, None, None], rows, cols].reshape(len(indices), -1)
-    grid_1d = torch.linspace(-radius, radius, kernel, device=scores.device)
-    dy, dx = torch.meshgrid(grid_1d, grid_1d, indexing="ij")
-    grid = torch.stack([dx.reshape(-1), dy.reshape(-1)], dim=1)
-    weights = ((patches - patches.max(dim=1).values[:, None]) / 0.1).exp()
-    residual = weights @ grid / weights.sum(dim=1)[:, None]
-    xy = torch.stack([indices % w, torch.div(indices, w, rounding_mode="trunc")], 1)
-    keypoints = xy.to(scores.dtype) + residual
+    keypoints = _refined(scores, image, torch.cat(chosen), radius)
     scale = torch.tensor([w - 1, h - 1], dtype=scores.dtype, device=scores.device)
     normalized = keypoints / scale * 2 - 1
     out, start = [], 0
@@ -411,23 +427,12 @@ def detect_keypoints_fixed(scores: torch.Tensor, radius: int = 2, threshold: flo
     features stage's feeding thread, not the GPU, set its pace. The same keypoints except
     where equal scores tie at the cut of the K strongest (either may be taken)."""
     b, _, h, w = scores.shape
-    nms = simple_nms(scores, radius)
-    nms[:, :, :radius] = 0
-    nms[:, :, :, :radius] = 0
-    nms[:, :, h - radius:] = 0
-    nms[:, :, :, w - radius:] = 0
-    if allowed is not None:
-        nms = torch.where(allowed[:, None], nms, torch.zeros_like(nms))
-    flat_nms, flat = nms.reshape(b, -1), scores.reshape(b, -1)
+    flat_nms, flat = _maxima(scores, radius, allowed)
     size = flat.shape[1]
     positions = torch.arange(size, device=scores.device)
     if threshold > 0:
         k = min(max_keypoints if max_keypoints > 0 else limit, size)
-        over = flat_nms > threshold
-        # an image with nothing above the threshold takes what is above its mean score
-        cut = torch.where(over.any(dim=1), torch.full_like(flat[:, 0], threshold),
-                          flat.mean(dim=1))
-        chosen = flat_nms > cut[:, None]
+        chosen = flat_nms > _cut(flat_nms, flat, threshold)[:, None]
         # at a kept maximum the NMS map holds the score: its strongest are the scores'
         values, index = torch.topk(torch.where(chosen, flat_nms, float("-inf")), k, dim=1)
         valid = values > float("-inf")
@@ -441,21 +446,8 @@ def detect_keypoints_fixed(scores: torch.Tensor, radius: int = 2, threshold: flo
         k = min(max_keypoints, size)
         index = torch.topk(flat_nms, k, dim=1).indices
         counts = torch.full((b,), k, dtype=torch.long, device=scores.device)
-    kernel = 2 * radius + 1
-    # the sub-pixel refinement of ``detect_keypoints_batch``, over (B, K) at once
-    padded = F.pad(scores[:, 0], (radius, radius, radius, radius))
-    steps = torch.arange(kernel, device=scores.device)
-    rows = torch.div(index, w, rounding_mode="trunc")[..., None, None] + steps[:, None]
-    cols = (index % w)[..., None, None] + steps[None, :]
-    image = torch.arange(b, device=scores.device)[:, None, None, None]
-    patches = padded[image, rows, cols].reshape(b * k, -1)
-    grid_1d = torch.linspace(-radius, radius, kernel, device=scores.device)
-    dy, dx = torch.meshgrid(grid_1d, grid_1d, indexing="ij")
-    grid = torch.stack([dx.reshape(-1), dy.reshape(-1)], dim=1)
-    weights = ((patches - patches.max(dim=1).values[:, None]) / 0.1).exp()
-    residual = (weights @ grid / weights.sum(dim=1)[:, None]).reshape(b, k, 2)
-    xy = torch.stack([index % w, torch.div(index, w, rounding_mode="trunc")], 2)
-    keypoints = xy.to(scores.dtype) + residual
+    image = torch.arange(b, device=scores.device)[:, None].expand(b, k).reshape(-1)
+    keypoints = _refined(scores, image, index.reshape(-1), radius).reshape(b, k, 2)
     # filled on the device: a copy from the host may not be captured in a CUDA graph
     scale = torch.stack([scores.new_full((), w - 1), scores.new_full((), h - 1)])
     normalized = keypoints / scale * 2 - 1
