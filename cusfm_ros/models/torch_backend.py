@@ -179,17 +179,14 @@ class TorchAlikedExtractor:
             if arrived is not None:
                 arrived.synchronize()
             width = 3 + self.descriptor_dim
-            out = []
-            for row in packed.numpy():
-                count = int(row[0])
-                if count == 0:
-                    out.append(Features.empty(self.descriptor_dim, (w, h)))
-                    continue
-                rows = row[1:1 + count * width].reshape(count, width)
-                out.append(Features(rows[:, :2].copy(), rows[:, 2].copy(), rows[:, 3:].copy(),
-                                    (w, h)))
-            return out
+            return self._features([row[1:1 + int(row[0]) * width].reshape(-1, width)
+                                   for row in packed.numpy()], (w, h))
         return finish
+
+    def _features(self, parts: list[np.ndarray], size: tuple[int, int]) -> list[Features]:
+        """Each image's (N, 3 + D) rows of x, y, score and descriptor as its ``Features``."""
+        return [Features(rows[:, :2].copy(), rows[:, 2].copy(), rows[:, 3:].copy(), size)
+                if len(rows) else Features.empty(self.descriptor_dim, size) for rows in parts]
 
     def _finish_variable(self, scores, feature_map, allowed, size: tuple[int, int]
                          ) -> list[Features]:
@@ -205,16 +202,8 @@ class TorchAlikedExtractor:
             packed = torch.cat([torch.cat(keypoints).float(),
                                 torch.cat([s for _, s in detected]).float()[:, None],
                                 descriptors.float()], dim=1).cpu().numpy()
-        out, start = [], 0
-        for points, _ in detected:
-            if len(points) == 0:
-                out.append(Features.empty(self.descriptor_dim, size))
-                continue
-            rows = packed[start:start + len(points)]
-            start += len(points)
-            out.append(Features(rows[:, :2].copy(), rows[:, 2].copy(), rows[:, 3:].copy(),
-                                size))
-        return out
+        ends = np.cumsum([len(points) for points in keypoints])
+        return self._features(np.split(packed, ends[:-1]), size)
 
 
 class TorchXFeatExtractor:
