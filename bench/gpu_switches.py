@@ -1,6 +1,7 @@
-"""The two switches that wait for a GPU measurement, on a run's own inputs, each against the
+"""The switches that wait for a GPU measurement, on a run's own inputs, each against the
 default, alternating: LightGlue with ``unmasked_attention`` over the run's matched pairs (its
-raw-match store) and ALIKED with ``fixed_shape_pass`` over its keyframe images.
+raw-match store) and ALIKED with ``fixed_shape_pass``, ``half_precision`` and both over its
+keyframe images.
 
 Usage (on a GPU machine, after a ``cusfm map`` run with the torch backend):
 ``python bench/gpu_switches.py RUN_DIR [--device cuda] [--pairs N] [--images N]
@@ -9,9 +10,10 @@ Usage (on a GPU machine, after a ``cusfm map`` run with the torch backend):
 Prints per variant and repeat: ms per pair (CUDA-synchronized, all pairs through
 ``match_many``) and the matches; ms per image (batches launched as the features stage does,
 one in flight while the one before is finished) and the keypoints; then how many matches
-only one LightGlue variant found, and the largest difference of the two ALIKED variants'
-keypoints, scores and descriptors. A first sweep of each variant (captures, first shapes)
-is not timed. Asserts nothing.
+only one LightGlue variant found, and per ALIKED variant the images whose keypoint counts
+differ from the default's and the largest difference of the others' keypoints, scores and
+descriptors (``half_precision`` rounds the scores: counts may differ). A first sweep of
+each variant (captures, first shapes) is not timed. Asserts nothing.
 """
 
 from __future__ import annotations
@@ -64,16 +66,20 @@ def lightglue_rows(features: dict, pairs: list[tuple[str, str]], device: str, re
 
 
 def aliked_rows(images: list[np.ndarray], device: str, repeat: int
-                ) -> tuple[list[tuple], list[float]]:
-    """(variant, repeat, ms per image, keypoints) rows; the largest |difference| of the two
-    variants' keypoints (px), scores and descriptors (inf where a count differs)."""
+                ) -> tuple[list[tuple], dict[str, tuple]]:
+    """(variant, repeat, ms per image, keypoints) rows; per variant other than the default,
+    how many images' keypoint counts differ from the default's and, over the images whose
+    counts agree, the largest |difference| of keypoints (px), scores and descriptors."""
     from cusfm_ros.core.features.aliked import AlikedOptions
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor
 
     options = AlikedOptions(device=device)
     variants = {"variable (default)": TorchAlikedExtractor(options),
                 "fixed_shape_pass": TorchAlikedExtractor(replace(options,
-                                                                 fixed_shape_pass=True))}
+                                                                 fixed_shape_pass=True)),
+                "half_precision": TorchAlikedExtractor(replace(options, half_precision=True)),
+                "fixed_shape_pass + half_precision": TorchAlikedExtractor(replace(
+                    options, fixed_shape_pass=True, half_precision=True))}
 
     def sweep(extractor) -> list:
         size, pending, out = extractor.batch_size, None, []
@@ -97,16 +103,20 @@ def aliked_rows(images: list[np.ndarray], device: str, repeat: int
             seconds = time.perf_counter() - started
             rows.append((name, run + 1, 1000 * seconds / len(images),
                          sum(len(f) for f in found[name])))
-    worst = [0.0, 0.0, 0.0]
-    for ours, theirs in zip(*found.values()):
-        if len(ours) != len(theirs):
-            worst = [float("inf")] * 3
-            break
-        if len(ours):
-            for i, field in enumerate(("keypoints_px", "scores", "descriptors")):
-                difference = np.abs(getattr(ours, field) - getattr(theirs, field)).max()
-                worst[i] = max(worst[i], float(difference))
-    return rows, worst
+    default, *others = found
+    differences = {}
+    for name in others:
+        counts_differ, worst = 0, [0.0, 0.0, 0.0]
+        for ours, theirs in zip(found[name], found[default]):
+            if len(ours) != len(theirs):
+                counts_differ += 1
+                continue
+            if len(ours):
+                for i, field in enumerate(("keypoints_px", "scores", "descriptors")):
+                    difference = np.abs(getattr(ours, field) - getattr(theirs, field)).max()
+                    worst[i] = max(worst[i], float(difference))
+        differences[name] = (counts_differ, *worst)
+    return rows, differences
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -136,13 +146,16 @@ def main(argv: list[str] | None = None) -> None:
     for name, repeat, ms, matches in rows:
         print(f"| {name} | {repeat} | {ms:.3f} | {matches} |")
     print(f"\nmatches found by both {both}, by one only {only}\n", flush=True)
-    rows, worst = aliked_rows(images, args.device, args.repeat)
+    rows, differences = aliked_rows(images, args.device, args.repeat)
     print(f"ALIKED, {len(images)} keyframe images on {args.device}\n\n"
           "| variant | repeat | ms / image | keypoints |\n|---|---|---|---|")
     for name, repeat, ms, keypoints in rows:
         print(f"| {name} | {repeat} | {ms:.2f} | {keypoints} |")
-    print(f"\nlargest |difference|: keypoints {worst[0]:.2e} px, scores {worst[1]:.2e}, "
-          f"descriptors {worst[2]:.2e}")
+    print("\nagainst the default: images whose keypoint counts differ; over the others the "
+          "largest |difference| of keypoints (px), scores and descriptors\n")
+    for name, (counts_differ, *worst) in differences.items():
+        print(f"- {name}: {counts_differ} of {len(images)} images; {worst[0]:.2e} px, "
+              f"{worst[1]:.2e}, {worst[2]:.2e}")
 
 
 if __name__ == "__main__":

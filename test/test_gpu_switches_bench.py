@@ -1,5 +1,5 @@
 """bench/gpu_switches.py (the switches that wait for a GPU measurement, each against the
-default) on CPU tensors: its rows, and the same matches and features from both variants."""
+default) on CPU tensors: its rows, and the same matches and features from every variant."""
 
 import sys
 from pathlib import Path
@@ -24,7 +24,12 @@ def test_both_switches_give_the_defaults_matches_and_features():
     rows, both, only = gpu_switches.lightglue_rows(features, [("left", "right")], "cpu", 1)
     assert [row[0] for row in rows] == ["masked (default)", "unmasked_attention"]
     assert rows[0][3] == rows[1][3] == both > 100 and only == 0
-    rows, worst = gpu_switches.aliked_rows([left, right], "cpu", 1)
-    assert [row[0] for row in rows] == ["variable (default)", "fixed_shape_pass"]
-    assert rows[0][3] == rows[1][3] > 500 and all(row[2] > 0 for row in rows)
-    assert np.isfinite(worst).all() and max(worst) < 1e-4
+    rows, differences = gpu_switches.aliked_rows([left, right], "cpu", 1)
+    assert [row[0] for row in rows] == ["variable (default)", "fixed_shape_pass",
+                                        "half_precision", "fixed_shape_pass + half_precision"]
+    # half_precision applies on a GPU only: on the CPU every variant is the default's features
+    assert len({row[3] for row in rows}) == 1 and rows[0][3] > 500
+    assert all(row[2] > 0 for row in rows)
+    assert list(differences) == [row[0] for row in rows[1:]]
+    for counts_differ, *worst in differences.values():
+        assert counts_differ == 0 and np.isfinite(worst).all() and max(worst) < 1e-4

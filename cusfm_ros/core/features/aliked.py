@@ -41,6 +41,11 @@ class AlikedOptions:
     batch's whole pass is one CUDA graph and one copy back, where the detection's
     variable sizes cost ~140 launches and a dozen host syncs per batch. The same features
     (tested on CPU); off by default until measured on a GPU."""
+    half_precision: bool = False
+    """The torch backend on a GPU runs the dense network (score map and feature map) in fp16
+    autocast, its outputs cast back to fp32 before the detection and the descriptor head:
+    half the memory traffic of a network made of thin full-resolution layers. Scores round to
+    fp16, so keypoints may differ from fp32's; off by default until measured on a GPU."""
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
