@@ -1,7 +1,7 @@
-"""The switches that wait for a GPU measurement, on a run's own inputs, each against the
-default, alternating: LightGlue with ``unmasked_attention`` over the run's matched pairs (its
-raw-match store) and ALIKED with ``fixed_shape_pass``, ``half_precision`` and both over its
-keyframe images.
+"""The networks' GPU switches on a run's own inputs, each variant against the default,
+alternating: LightGlue with and without ``unmasked_attention`` (on by default) over the run's
+matched pairs (its raw-match store) and ALIKED with and without ``fixed_shape_pass`` (on by
+default) over its keyframe images.
 
 Usage (on a GPU machine, after a ``cusfm map`` run with the torch backend):
 ``python bench/gpu_switches.py RUN_DIR [--device cuda] [--pairs N] [--images N]
@@ -10,10 +10,10 @@ Usage (on a GPU machine, after a ``cusfm map`` run with the torch backend):
 Prints per variant and repeat: ms per pair (CUDA-synchronized, all pairs through
 ``match_many``) and the matches; ms per image (batches launched as the features stage does,
 one in flight while the one before is finished) and the keypoints; then how many matches
-only one LightGlue variant found, and per ALIKED variant the images whose keypoint counts
-differ from the default's and the largest difference of the others' keypoints, scores and
-descriptors (``half_precision`` rounds the scores: counts may differ). A first sweep of
-each variant (captures, first shapes) is not timed. Asserts nothing.
+only one LightGlue variant found, and per other ALIKED variant the images whose keypoint
+counts differ from the default's and the largest difference of the others' keypoints, scores
+and descriptors. A first sweep of each variant (captures, first shapes) is not timed.
+Asserts nothing.
 """
 
 from __future__ import annotations
@@ -42,9 +42,9 @@ def lightglue_rows(features: dict, pairs: list[tuple[str, str]], device: str, re
 
     inputs = [(features[a], features[b]) for a, b in pairs]
     options = LightGlueOptions(device=device)
-    variants = {"masked (default)": TorchLightGlueMatcher(options),
-                "unmasked_attention": TorchLightGlueMatcher(
-                    replace(options, unmasked_attention=True))}
+    variants = {"unmasked_attention (default)": TorchLightGlueMatcher(
+                    replace(options, unmasked_attention=True)),
+                "masked": TorchLightGlueMatcher(replace(options, unmasked_attention=False))}
     for matcher in variants.values():
         matcher.match_many(inputs)
     rows, found = [], {}
@@ -74,12 +74,9 @@ def aliked_rows(images: list[np.ndarray], device: str, repeat: int
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor
 
     options = AlikedOptions(device=device)
-    variants = {"variable (default)": TorchAlikedExtractor(options),
-                "fixed_shape_pass": TorchAlikedExtractor(replace(options,
-                                                                 fixed_shape_pass=True)),
-                "half_precision": TorchAlikedExtractor(replace(options, half_precision=True)),
-                "fixed_shape_pass + half_precision": TorchAlikedExtractor(replace(
-                    options, fixed_shape_pass=True, half_precision=True))}
+    variants = {"fixed_shape_pass (default)": TorchAlikedExtractor(
+                    replace(options, fixed_shape_pass=True)),
+                "variable": TorchAlikedExtractor(replace(options, fixed_shape_pass=False))}
 
     def sweep(extractor) -> list:
         size, pending, out = extractor.batch_size, None, []

@@ -603,12 +603,13 @@ def test_batched_lightglue_equals_one_pair_at_a_time_on_cuda(motorcycle):
     _batched_lightglue_equals_one_pair_at_a_time("cuda", motorcycle)
 
 
-def _batched_aliked_equals_one_image_at_a_time(device, motorcycle):
+def _batched_aliked_equals_one_image_at_a_time(device, motorcycle, fixed_shape_pass=True):
     """ALIKED's network on a batch of images (and detection over the batch at once) gives
     each image the features it gets alone, masks included; one batch holds one size."""
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor
 
-    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=400, device=device))
+    extractor = TorchAlikedExtractor(AlikedOptions(max_keypoints=400, device=device,
+                                                   fixed_shape_pass=fixed_shape_pass))
     left, right = motorcycle
     flat = np.full_like(left, 90)  # no score above the threshold: the mean decides
     images = [left, right, flat, right[::-1].copy()]
@@ -648,8 +649,9 @@ def _batched_aliked_equals_one_image_at_a_time(device, motorcycle):
         extractor.extract_batch([left, left[:200]])
 
 
-def test_batched_aliked_equals_one_image_at_a_time_on_cpu(motorcycle):
-    _batched_aliked_equals_one_image_at_a_time("cpu", motorcycle)
+@pytest.mark.parametrize("fixed_shape_pass", [True, False])
+def test_batched_aliked_equals_one_image_at_a_time_on_cpu(motorcycle, fixed_shape_pass):
+    _batched_aliked_equals_one_image_at_a_time("cpu", motorcycle, fixed_shape_pass)
 
 
 @pytest.mark.gpu
@@ -815,13 +817,11 @@ def test_reduced_precision_lightglue_on_cuda_keeps_the_fp32_matches(motorcycle):
 
 @pytest.mark.gpu
 @pytest.mark.parametrize("fixed_shape_pass", [False, True])
-@pytest.mark.parametrize("half_precision", [False, True])
 def test_aliked_replayed_as_a_cuda_graph_gives_the_features_of_the_uncaptured_network(
-        motorcycle, fixed_shape_pass, half_precision):
+        motorcycle, fixed_shape_pass):
     """A batch shape's first pass (the network, or with ``fixed_shape_pass`` the network,
     the detection and the descriptors) runs as it is, its second is captured and replayed,
-    later ones replay with new images: each batch's features equal those without graphs
-    (in fp16 autocast too)."""
+    later ones replay with new images: each batch's features equal those without graphs."""
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor
@@ -829,12 +829,10 @@ def test_aliked_replayed_as_a_cuda_graph_gives_the_features_of_the_uncaptured_ne
     left, right = motorcycle
     batches = [[left, right, right, left], [right, left, left, right], [left, left, right, right]]
     graphed = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda",
-                                                 fixed_shape_pass=fixed_shape_pass,
-                                                 half_precision=half_precision))
+                                                 fixed_shape_pass=fixed_shape_pass))
     plain = TorchAlikedExtractor(AlikedOptions(max_keypoints=2048, device="cuda",
-                                               cuda_graphs=False,
-                                               half_precision=half_precision))
-    assert plain._pass == plain._dense  # no graphs, the variable-size detection
+                                               cuda_graphs=False, fixed_shape_pass=False))
+    assert plain._pass == plain.model.dense  # no graphs, the variable-size detection
     for batch in batches:
         for ours, theirs in zip(graphed.extract_batch(batch), plain.extract_batch(batch)):
             assert len(ours) > 300
@@ -842,31 +840,6 @@ def test_aliked_replayed_as_a_cuda_graph_gives_the_features_of_the_uncaptured_ne
             np.testing.assert_allclose(ours.scores, theirs.scores, atol=1e-5)
             np.testing.assert_allclose(ours.descriptors, theirs.descriptors, atol=1e-5)
     assert len(graphed._pass) == 1 and graphed._pass.replays == 2
-
-
-@pytest.mark.gpu
-def test_aliked_in_half_precision_finds_the_fp32_keypoints_and_descriptors(motorcycle):
-    """The dense network in fp16 autocast: scores round to fp16, so keypoints of nearly
-    equal score may change places at the cap; most keypoints are the fp32 ones, with their
-    descriptors."""
-    if not torch.cuda.is_available():
-        pytest.skip("no CUDA device")
-    from cusfm_ros.models.torch_backend import TorchAlikedExtractor
-
-    options = AlikedOptions(max_keypoints=2048, device="cuda")
-    full = TorchAlikedExtractor(options).extract_batch(list(motorcycle))
-    half = TorchAlikedExtractor(replace(options, half_precision=True)).extract_batch(
-        list(motorcycle))
-    for ours, theirs in zip(half, full):
-        assert len(theirs) > 300 and abs(len(ours) - len(theirs)) <= 0.05 * len(theirs)
-        distance = np.linalg.norm(ours.keypoints_px[:, None] - theirs.keypoints_px[None],
-                                  axis=2)
-        nearest = distance.argmin(1)
-        same = distance[np.arange(len(ours)), nearest] < 0.1
-        assert same.mean() >= 0.9
-        np.testing.assert_allclose(ours.scores[same], theirs.scores[nearest[same]], atol=1e-2)
-        assert np.median((ours.descriptors[same] *
-                          theirs.descriptors[nearest[same]]).sum(1)) > 0.99
 
 
 @pytest.mark.gpu
@@ -1071,8 +1044,9 @@ def test_aliked_fixed_shape_pass_gives_the_variable_passs_features(motorcycle):
     left, right = motorcycle
     nothing = np.zeros(left.shape[:2], np.uint8)
     for options in (AlikedOptions(device="cpu"), AlikedOptions(device="cpu", max_keypoints=300)):
-        variable = TorchAlikedExtractor(options)
-        fixed = TorchAlikedExtractor(replace(options, fixed_shape_pass=True))
+        variable = TorchAlikedExtractor(replace(options, fixed_shape_pass=False))
+        fixed = TorchAlikedExtractor(options)  # the default
+        assert fixed._pass == fixed._whole_pass
         fixed.model = variable.model  # the same weights, loaded once
         for image, mask in ((left, None), (right, None), (left, nothing)):
             ours, theirs = fixed.extract(image, mask), variable.extract(image, mask)

@@ -22,14 +22,11 @@ def test_both_switches_give_the_defaults_matches_and_features():
     extractor = TorchAlikedExtractor(AlikedOptions(device="cpu", max_keypoints=512))
     features = {"left": extractor.extract(left), "right": extractor.extract(right)}
     rows, both, only = gpu_switches.lightglue_rows(features, [("left", "right")], "cpu", 1)
-    assert [row[0] for row in rows] == ["masked (default)", "unmasked_attention"]
+    assert [row[0] for row in rows] == ["unmasked_attention (default)", "masked"]
     assert rows[0][3] == rows[1][3] == both > 100 and only == 0
     rows, differences = gpu_switches.aliked_rows([left, right], "cpu", 1)
-    assert [row[0] for row in rows] == ["variable (default)", "fixed_shape_pass",
-                                        "half_precision", "fixed_shape_pass + half_precision"]
-    # half_precision applies on a GPU only: on the CPU every variant is the default's features
-    assert len({row[3] for row in rows}) == 1 and rows[0][3] > 500
-    assert all(row[2] > 0 for row in rows)
-    assert list(differences) == [row[0] for row in rows[1:]]
-    for counts_differ, *worst in differences.values():
-        assert counts_differ == 0 and np.isfinite(worst).all() and max(worst) < 1e-4
+    assert [row[0] for row in rows] == ["fixed_shape_pass (default)", "variable"]
+    assert rows[0][3] == rows[1][3] > 500 and all(row[2] > 0 for row in rows)
+    assert list(differences) == ["variable"]
+    counts_differ, *worst = differences["variable"]
+    assert counts_differ == 0 and np.isfinite(worst).all() and max(worst) < 1e-4

@@ -78,7 +78,7 @@ class TorchAlikedExtractor:
         self.device = _device(options.device)
         self.model = load_aliked().to(self.device)
         self.batch_size = options.batch_size if self.device.type == "cuda" else 1
-        self._pass = self._whole_pass if options.fixed_shape_pass else self._dense
+        self._pass = self._whole_pass if options.fixed_shape_pass else self.model.dense
         if self.device.type == "cuda" and options.cuda_graphs:
             # one graph per batch shape: of the dense network, or with ``fixed_shape_pass``
             # of the network, the detection and the descriptors. A replay's outputs are
@@ -90,22 +90,12 @@ class TorchAlikedExtractor:
         # overwrites them, and the batch before may not have queued its copy on them yet
         self._lock = threading.Lock()
 
-    def _dense(self, images) -> tuple:
-        """The dense network's (scores, feature map), in fp16 autocast with ``half_precision``
-        on a GPU (weights cast at each use: a CUDA graph's capture needs it), fp32 out."""
-        torch = self.torch
-        if not (self.options.half_precision and self.device.type == "cuda"):
-            return self.model.dense(images)
-        with torch.autocast("cuda", torch.float16, cache_enabled=False):
-            scores, feature_map = self.model.dense(images)
-        return scores.float(), feature_map.float()
-
     def _whole_pass(self, images, allowed) -> tuple:
         """(B, 3, H, W) images -> (B, 1 + K * (3 + D)): each image's keypoint count, then K
         rows of x, y, score and descriptor, the first ``count`` real
         (``detect_keypoints_fixed``). Fixed shapes and no host sync: one CUDA graph."""
         o, torch = self.options, self.torch
-        scores, feature_map = self._dense(images)
+        scores, feature_map = self.model.dense(images)
         keypoints, kp_scores, counts = detect_keypoints_fixed(
             scores, o.nms_radius, o.detection_threshold, o.max_keypoints, allowed=allowed)
         descriptors = self.model.desc_head.forward_fixed(feature_map, keypoints)

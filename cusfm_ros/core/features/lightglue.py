@@ -51,10 +51,12 @@ class LightGlueOptions:
     pads both sides of a pass to one of a few sizes for it (``graphed_passes.graph_side`` of
     its largest image: at most 1/8 more points than that, masked); elsewhere, and with
     ``depth_confidence``, it has no effect."""
-    unmasked_attention: bool = False
+    unmasked_attention: bool = True
     """The torch backend's fused attention over padded batches without an attention mask:
     padded keys get a logit of -1e4 through one more channel (``nets.lightglue``), so that
-    the flash kernel, which takes no mask, runs instead of the memory-efficient one."""
+    the flash kernel, which takes no mask, runs instead of the memory-efficient one: 1.19-1.21
+    against 1.28 ms a pair on the street's 1,314 pairs (H100), 0.4 % of the matches
+    different (fp16 rounding); false: the masked kernel."""
     device: str = "auto"
     threads: int = 0
 
