@@ -1,5 +1,5 @@
-"""bench/gpu_switches.py (the switches that wait for a GPU measurement, each against the
-default) on CPU tensors: its rows, and the same matches and features from every variant."""
+"""bench/gpu_switches.py (the networks' GPU switches, each variant against the default) on
+CPU tensors: its rows, and the same matches and features from every variant."""
 
 import sys
 from pathlib import Path
