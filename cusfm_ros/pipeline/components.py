@@ -30,6 +30,7 @@ from cusfm_ros.core.features.xfeat import XFeatExtractor, XFeatOptions
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.store import ensure_models
 from cusfm_ros.pipeline.config import options_as_dict
+from cusfm_ros.pipeline.parallel import workers_ready
 
 logger = logging.getLogger(__name__)
 EXTRACTORS = ("aliked", "sift", "xfeat")
@@ -228,6 +229,15 @@ def with_batched_matches(items, matcher, pair_of, with_matches):
     if in_flight is not None:
         yield from _fill(*in_flight, with_matches)
     yield from _fill(*launched, with_matches)
+
+
+def verifies_on_processes(matcher, module: str, threads: int) -> bool:
+    """Whether the verification downstream of ``with_batched_matches`` goes to worker
+    processes (``process_map_jobs``) rather than threads: every pair is matched in the
+    calling thread (a batched matcher: no match is left to the verification), more than one
+    core is allowed and the run's fork server has imported ``module`` (the stage's, whose
+    job function the workers run). Threads otherwise: an ONNX matcher matches there."""
+    return getattr(matcher, "batch_pairs", 1) > 1 and workers_ready([module], threads)
 
 
 def submit_pairs(matcher, pairs):

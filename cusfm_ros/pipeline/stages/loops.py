@@ -18,14 +18,16 @@ from cusfm_ros.core.features.types import Features
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.retrieval.database import ImageDatabase
-from cusfm_ros.core.retrieval.loops import LoopOptions, LoopRecord, verify_pair
+from cusfm_ros.core.retrieval.loops import (LoopOptions, LoopRecord, Verification,
+                                             verify_matched, verify_pair)
 from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
 from cusfm_ros.io.bow_file import read_bows, write_bows
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import write_loops
 from cusfm_ros.io.vocabulary_file import load_vocabulary
-from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
-from cusfm_ros.pipeline.parallel import ordered_map
+from cusfm_ros.pipeline.components import (LazyMatcher, verifies_on_processes,
+                                          with_batched_matches)
+from cusfm_ros.pipeline.parallel import ordered_map, process_map_jobs
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
@@ -72,6 +74,11 @@ class StereoPairs:
     def key(self, keyframe) -> tuple:
         """The same for both images of a stereo pair."""
         return (keyframe.sample_id, *sorted(k.camera_name for k in self.images(keyframe)))
+
+
+def verify_job(job: tuple | None) -> Verification | None:
+    """A candidate's verification on a worker process: ``verify_matched``'s arguments."""
+    return None if job is None else verify_matched(*job)
 
 
 def loop_database(keyframes: KeyframeSet, features: dict[str, Features],
@@ -150,11 +157,26 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
                                               keyframes.rig[match.camera_name].camera,
                                               options, seed)
 
+    def job(item):
+        """What a worker process verifies: the matched keypoints and the two cameras."""
+        _, query, match, _, matches, _ = item
+        if match is None:
+            return None
+        return (features[query.image_name].keypoints_px[matches.indices[:, 0]],
+                features[match.image_name].keypoints_px[matches.indices[:, 1]],
+                keyframes.rig[query.camera_name].camera,
+                keyframes.rig[match.camera_name].camera, options, seed)
+
     loops, verified = [], 0
     progress = Progress("loops", len(frames), "keyframes")
     items = with_batched_matches(candidates(), matcher, pair_of,
                                  lambda item, matches: (*item[:4], matches, True))
-    for (_, query, match, score, *_), outcome in ordered_map(verify, items, threads):
+    if verifies_on_processes(matcher, __name__, threads):
+        outcomes = ((item, None if result is None else (item[5], item[4], result))
+                    for item, result in process_map_jobs(verify_job, items, job, threads))
+    else:
+        outcomes = ordered_map(verify, items, threads)
+    for (_, query, match, score, *_), outcome in outcomes:
         if match is None:
             progress.step(note=f"{len(loops)} loops")
             continue
@@ -177,6 +199,7 @@ class LoopsStage(Stage):
     inputs = ("keyframes", "features", "vocabulary")
     optional_inputs = ("vocabulary_bows",)
     outputs = ("loops", "loop_bows")
+    worker_modules = (__name__,)
     version = 4  # 2: loops/bows.npz; 3: rows from vocabulary/bows.npz; 4: by stereo pair
 
     def run(self, context: StageContext) -> dict:

@@ -18,10 +18,11 @@ from cusfm_ros.core.relpose.two_view import essential_inliers
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.pairs_file import read_pairs
-from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
+from cusfm_ros.pipeline.components import (LazyMatcher, verifies_on_processes,
+                                          with_batched_matches)
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
-from cusfm_ros.pipeline.parallel import ordered_map
+from cusfm_ros.pipeline.parallel import ordered_map, process_map_jobs
 from cusfm_ros.pipeline.stages.loops import cached_matches, remember_matches
 from cusfm_ros.pipeline.stores import (load_keyframes, open_features, open_raw_matches,
                                        open_verified)
@@ -40,6 +41,12 @@ class MatchingOptions:
     def __post_init__(self) -> None:
         if self.ransac_threshold_px <= 0 or self.min_inliers < 8:
             raise ConfigError("matching: ransac_threshold_px > 0 and min_inliers >= 8")
+
+
+def essential_job(job: tuple | None):
+    """A pair's verification on a worker process: ``essential_inliers``' arguments, or None
+    for a pair left unverified."""
+    return None if job is None else essential_inliers(*job)
 
 
 def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
@@ -87,10 +94,29 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
             kept = Matches(raw.indices[mask], raw.confidences[mask])
         return computed, raw, kept
 
+    def job(item):
+        """What a worker process verifies: the matched keypoints and the two cameras."""
+        a, b, features_a, features_b, raw, _ = item
+        if not (options.verify and len(raw)):
+            return None
+        return (features_a.keypoints_px[raw.indices[:, 0]],
+                features_b.keypoints_px[raw.indices[:, 1]], cameras[a], cameras[b],
+                options.ransac_threshold_px, seed)
+
+    def outcome(item, mask):
+        raw = item[4]
+        return item[5], raw, raw if mask is None else Matches(raw.indices[mask],
+                                                              raw.confidences[mask])
+
     items = with_batched_matches(inputs(), matcher,
                                  lambda item: item[2:4] if item[4] is None else None,
                                  lambda item, raw: (*item[:4], raw, True))
-    for (a, b, *_), (computed, raw, kept) in ordered_map(match_and_verify, items, threads):
+    if verifies_on_processes(matcher, __name__, threads):
+        outcomes = ((item, outcome(item, mask))
+                    for item, mask in process_map_jobs(essential_job, items, job, threads))
+    else:
+        outcomes = ordered_map(match_and_verify, items, threads)
+    for (a, b, *_), (computed, raw, kept) in outcomes:
         matched += computed
         if computed:
             remember_matches(cache, a, b, raw)
@@ -111,6 +137,7 @@ class MatchingStage(Stage):
     reads = ("matching", "features.matcher", "seed")
     inputs = ("keyframes", "pairs", "features")
     outputs = ("verified_matches",)
+    worker_modules = (__name__,)
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options

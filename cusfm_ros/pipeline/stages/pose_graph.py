@@ -193,7 +193,10 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
         """measure_loop's arguments per loop as its matches come (the item kept in
         ``measured_items``), so the worker processes measure while later pairs are still
         being matched."""
-        for _, item in ordered_map(missing_matches, items, threads):
+        # a batched matcher left nothing to compute: no threads to wait for the GIL beside
+        # the one that feeds the GPU
+        for _, item in ordered_map(missing_matches, items,
+                                   1 if getattr(matcher, "batch_pairs", 1) > 1 else threads):
             edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm = item
             if new_qm:
                 remember_matches(cache, query.image_name, match.image_name, matches_qm)
