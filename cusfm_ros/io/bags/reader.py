@@ -94,8 +94,17 @@ class BagReader:
     def end_ns(self) -> int:
         return int(self._reader.end_time)
 
-    def messages(self, topics: Iterable[str]) -> Iterator[RawMessage]:
+    def messages(self, topics: Iterable[str], *, from_index: bool = False
+                 ) -> Iterator[RawMessage]:
+        """Every message on ``topics`` in bag order. ``from_index``: on an uncompressed,
+        indexed MCAP bag, each message is read alone where the indexes place it
+        (``mcap_index``: no chunk read whole, none checked against its CRC), for a few small
+        messages between big ones; through rosbags otherwise."""
         wanted = set(topics)
+        located = self._located(wanted) if from_index else None
+        if located is not None:
+            yield from self._read_located(*located)
+            return
         connections = [c for c in self._reader.connections if c.topic in wanted]
         count = 0
         try:
@@ -109,11 +118,47 @@ class BagReader:
                            f"messages ({type(exc).__name__}: {exc}); re-record or repair it "
                            "(`ros2 bag reindex` for rosbag2)") from None
 
+    def _located(self, topics: set[str]) -> tuple[list, dict[str, str]] | None:
+        """The messages on ``topics`` located through the MCAP indexes, and each topic's
+        message type; None where the indexes cannot give them or a topic has two types."""
+        from cusfm_ros.io.bags.mcap_index import indexed_messages, storage_files
+
+        types: dict[str, set[str]] = {}
+        for connection in self._reader.connections:
+            if connection.topic in topics:
+                types.setdefault(connection.topic, set()).add(connection.msgtype)
+        if any(len(names) != 1 for names in types.values()):
+            return None
+        files = storage_files(self.path) if self.is_ros2 else None
+        located = None if files is None else indexed_messages(files, topics)
+        return None if located is None else (located, {t: n.pop() for t, n in types.items()})
+
+    def _read_located(self, located: list, types: dict[str, str]) -> Iterator[RawMessage]:
+        from cusfm_ros.io.bags.mcap_index import read_payload
+
+        handles: dict[Path, Any] = {}
+        count = 0
+        try:
+            for message in located:
+                handle = handles.get(message.file)
+                if handle is None:
+                    handle = handles[message.file] = open(message.file, "rb")
+                raw = read_payload(handle, message)
+                count += 1
+                yield RawMessage(message.topic, types[message.topic], message.log_time_ns, raw)
+        except OSError as exc:
+            raise BagError(f"{self.path}: the bag is corrupt or truncated after {count} "
+                           f"messages ({exc}); re-record or repair it (`ros2 bag reindex` "
+                           "for rosbag2)") from None
+        finally:
+            for handle in handles.values():
+                handle.close()
+
     def indexed_header_stamps(self, topics: Iterable[str]) -> dict[str, list[int]] | None:
         """Header stamps of every message on ``topics`` (per topic, in ``messages`` order)
-        read from an MCAP bag's indexes, no message read (``mcap_stamps``); None where the
+        read from an MCAP bag's indexes, no message read (``mcap_index``); None where the
         bag cannot give them so (``messages`` then)."""
-        from cusfm_ros.io.bags.mcap_stamps import header_stamps, storage_files
+        from cusfm_ros.io.bags.mcap_index import header_stamps, storage_files
 
         files = storage_files(self.path) if self.is_ros2 else None
         return None if files is None else header_stamps(files, topics)

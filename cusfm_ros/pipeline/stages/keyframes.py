@@ -261,7 +261,7 @@ class KeyframeExtractor:
             for topic, series in indexed.items():
                 stamps[image_topics[topic].name] += series
                 num_images += len(series)
-        for message in bag.messages(wanted):
+        for message in bag.messages(wanted, from_index=True):
             topic = message.topic
             if topic in image_topics:
                 stamps[image_topics[topic].name].append(bag.header_stamp_ns(message))

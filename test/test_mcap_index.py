@@ -1,13 +1,15 @@
-"""Image header stamps from an MCAP bag's indexes: the same stamps, in the same order, as
-reading every message; None (read the messages) wherever the indexes cannot give them."""
+"""Messages and image header stamps from an MCAP bag's indexes: the same messages and
+stamps, in the same order, as reading every chunk; None (read the chunks) wherever the
+indexes cannot give them."""
 
 import numpy as np
 import pytest
 
 from cusfm_ros.core.cameras import PinholeCamera
 from cusfm_ros.core.geometry import Rigid3
+from cusfm_ros.errors import BagError
 from cusfm_ros.io.bags import messages as m
-from cusfm_ros.io.bags.mcap_stamps import header_stamps, storage_files
+from cusfm_ros.io.bags.mcap_index import header_stamps, storage_files
 from cusfm_ros.io.bags.reader import BagReader
 from cusfm_ros.io.bags.writer import BagWriter
 
@@ -57,6 +59,37 @@ def test_indexed_stamps_are_the_messages_stamps_in_order(tmp_path):
     assert files == [tmp_path / "bag" / "bag.mcap"]
     assert header_stamps(files, [LEFT, RIGHT]) == expected  # a bare .mcap file, too
     assert storage_files(files[0]) == files
+
+
+def all_messages(path, topics, from_index):
+    with BagReader(path) as bag:
+        return list(bag.messages(topics, from_index=from_index))
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_messages_from_the_indexes_are_the_chunks_messages(tmp_path, storage, monkeypatch):
+    write_bag(tmp_path / "bag", storage)
+    topics = [ODOM, LEFT.replace("image_raw", "camera_info"), RIGHT]
+    read = all_messages(tmp_path / "bag", topics, False)
+    assert [m.topic for m in read].count(ODOM) == 40 and len(read) == 40 + 4 + 40
+    located = []
+    import cusfm_ros.io.bags.mcap_index as index
+
+    real = index.indexed_messages
+    monkeypatch.setattr(index, "indexed_messages",
+                        lambda *a: located.append(found := real(*a)) or found)
+    assert all_messages(tmp_path / "bag", topics, True) == read  # topic, type, stamp, bytes
+    assert len(located) == (storage == "mcap") and (storage != "mcap" or located[0])
+
+
+def test_a_message_cut_off_by_a_short_file_is_named(tmp_path):
+    write_bag(tmp_path / "bag")
+    mcap = tmp_path / "bag" / "bag.mcap"
+    with BagReader(tmp_path / "bag") as bag:
+        located, _ = bag._located({LEFT})
+        mcap.write_bytes(mcap.read_bytes()[:located[5].payload_at + 10])  # after indexing
+        with pytest.raises(BagError, match="corrupt or truncated after 5 messages"):
+            list(bag._read_located(located, {LEFT: m.IMAGE}))
 
 
 def test_no_indexed_stamps_where_the_indexes_cannot_give_them(tmp_path):
