@@ -943,10 +943,12 @@ def test_torch_aliked_converts_on_the_device_as_prepare_image_does(rng):
     """The torch extractor converts images on its device; every accepted kind of image gives
     exactly the network input ``prepare_image`` makes on the CPU, and bad ones its errors."""
     from cusfm_ros.core.features.types import prepare_image
+    from cusfm_ros.models.pinned import PinnedStaging
     from cusfm_ros.models.torch_backend import TorchAlikedExtractor
 
     extractor = TorchAlikedExtractor.__new__(TorchAlikedExtractor)  # no weights needed
     extractor.torch, extractor.device = torch, torch.device("cpu")
+    extractor._staging = PinnedStaging(torch, extractor.device)
     images = [rng.integers(0, 256, (40, 50), dtype=np.uint8),
               rng.integers(0, 256, (40, 50, 1), dtype=np.uint8),
               rng.integers(0, 256, (40, 50, 4), dtype=np.uint8),

@@ -31,6 +31,7 @@ from cusfm_ros.models.graphed_passes import GraphedPasses, graph_side
 from cusfm_ros.models.nets.aliked import detect_keypoints_batch, detect_keypoints_fixed
 from cusfm_ros.models.nets.lightglue import Assign, Embed, LayerStep, mutual_best
 from cusfm_ros.models.nets.xfeat import detect_and_describe
+from cusfm_ros.models.pinned import PinnedStaging
 
 logger = logging.getLogger(__name__)
 _PRECISION_FLAGS_LOCK = threading.Lock()
@@ -89,6 +90,7 @@ class TorchAlikedExtractor:
         # one batch at a time from its pass to the copy of the graph's outputs: a replay
         # overwrites them, and the batch before may not have queued its copy on them yet
         self._lock = threading.Lock()
+        self._staging = PinnedStaging(torch, self.device)  # under ``_lock``
 
     def _whole_pass(self, images, allowed) -> tuple:
         """(B, 3, H, W) images -> (B, 1 + K * (3 + D)): each image's keypoint count, then K
@@ -111,16 +113,16 @@ class TorchAlikedExtractor:
         of the bytes) from pinned memory, behind the work already queued, so that the
         thread that feeds the GPU neither does per-pixel work nor waits for the pass before
         (a copy from pageable memory waited for it: 0.8 s of the features stage's main
-        thread at 200 street frames, py-spy on the H100 machine)."""
-        torch = self.torch
+        thread at 200 street frames, py-spy on the H100 machine); the batch is stacked
+        straight into a reused pinned buffer (``PinnedStaging``)."""
         dtypes = {image.dtype for image in images}
         if len(dtypes) != 1:
             raise FeatureError(f"extract_batch needs images of one dtype, got "
                                f"{sorted(map(str, dtypes))}")
         dtype, = dtypes
-        tensor = torch.from_numpy(np.stack([np.asarray(image) for image in images]))
-        if self.device.type == "cuda":
-            tensor = tensor.pin_memory().to(self.device, non_blocking=True)
+        arrays = [np.asarray(image) for image in images]
+        tensor = self._staging.upload((len(arrays), *arrays[0].shape), dtype,
+                                      lambda out: np.stack(arrays, out=out))
         tensor = tensor.float() / SCALE[dtype] if dtype != np.float32 else tensor
         if tensor.ndim == 3:
             tensor = tensor[..., None]
