@@ -130,8 +130,9 @@ def test_ladybug_49_same_final_cost_as_gtsam():
 
 
 def test_observation_pairs_in_torch_are_numpys(rng):
-    """The pairs of observations of each point, built by torch (on the GPU's path) and by
-    numpy (the CPU's): the same integers in the same order."""
+    """The pairs of two different observations of each point, each pair once, built by
+    torch (on the GPU's path) and by numpy (the CPU's): the same integers in the same
+    order."""
     from cusfm_ros.core.mapping.schur_adjuster import _Pairs, _pairs_in_torch
 
     lengths = rng.integers(1, 9, 300)
@@ -140,8 +141,14 @@ def test_observation_pairs_in_torch_are_numpys(rng):
     on_cpu = _Pairs(obs_point, obs_camera, 40, "cpu")
     first, second, block = _pairs_in_torch(torch.as_tensor(obs_point),
                                            torch.as_tensor(obs_camera), 40)
-    assert len(first) == int((lengths ** 2).sum())
+    assert len(first) == int((lengths * (lengths - 1) // 2).sum())
     for ours, theirs in ((first, on_cpu.first), (second, on_cpu.second),
                          (block, on_cpu.block)):
         np.testing.assert_array_equal(ours.numpy(), theirs.numpy())
     assert (obs_point[first.numpy()] == obs_point[second.numpy()]).all()
+    unordered = {tuple(sorted(pair)) for pair in zip(first.tolist(), second.tolist())}
+    expected = {(a, b) for p in range(300) for a in np.nonzero(obs_point == p)[0].tolist()
+                for b in np.nonzero(obs_point == p)[0].tolist() if a < b}
+    assert unordered == expected and len(unordered) == len(first)
+    np.testing.assert_array_equal(block.numpy(), obs_camera[first.numpy()] * 40
+                                  + obs_camera[second.numpy()])

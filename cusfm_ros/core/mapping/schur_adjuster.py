@@ -151,20 +151,23 @@ def so3_exp(w: torch.Tensor) -> torch.Tensor:
 
 
 class _Pairs:
-    """Every ordered pair of observations of one point (the blocks of W V⁻¹ Wᵀ), built once
-    where the solve runs. On a GPU with torch: the host's numpy took 1.2 s of the mapping
-    stage's main thread at 300 frames (py-spy, H100) for ~7M pairs, before copying them
-    over; on the CPU numpy stays (0.6 s against torch's 1.4 s for 8.5M pairs)."""
+    """Every pair of two different observations of one point, each pair once (the first
+    earlier in the point's run than the second): the off-diagonal terms of W V⁻¹ Wᵀ, whose
+    mirror images the solve adds by symmetry (``SchurAdjuster``: half the pair products and
+    scattered adds of every ordered pair, ~7M at street 300). Built once where the solve
+    runs. On a GPU with torch: the host's numpy took 1.2 s of the mapping stage's main thread
+    at 300 frames (py-spy, H100) for the ordered pairs, before copying them over; on the CPU
+    numpy stays (0.6 s against torch's 1.4 s for 8.5M ordered pairs)."""
 
     def __init__(self, obs_point: np.ndarray, obs_camera: np.ndarray, num_cameras: int,
                  device) -> None:
         if torch.device(device).type == "cpu":
             order = np.argsort(obs_point, kind="stable")
-            counts = np.bincount(obs_point)
-            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-            n = counts[obs_point[order]]
+            ends = np.cumsum(np.bincount(obs_point))
+            position = np.arange(len(order))
+            n = ends[obs_point[order]] - position - 1  # the later observations of its point
             first = np.repeat(order, n)
-            second = order[concatenated_ranges(starts[obs_point[order]], n)]
+            second = order[concatenated_ranges(position + 1, n)]
             self.first, self.second = torch.as_tensor(first), torch.as_tensor(second)
             self.block = torch.as_tensor(obs_camera[first] * num_cameras
                                          + obs_camera[second])
@@ -178,15 +181,14 @@ def _pairs_in_torch(point, camera, num_cameras: int):
     """``_Pairs``' (first, second, block) computed by torch where ``point`` lives: the same
     integers as the numpy version."""
     order = torch.argsort(point, stable=True)
-    counts = torch.bincount(point)
-    starts = torch.cumsum(counts, 0) - counts
-    sorted_point = point[order]
-    n = counts[sorted_point]
+    ends = torch.cumsum(torch.bincount(point), 0)
+    position = torch.arange(len(order), device=point.device)
+    n = ends[point[order]] - position - 1
     first = torch.repeat_interleave(order, n)
-    # concatenated ranges starts[p] + 0..n-1, one run per observation (index_ranges.py)
+    # concatenated ranges position + 1 .. + n, one run per observation (index_ranges.py)
     run_start = torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
     within = torch.arange(len(first), device=point.device) - run_start
-    second = order[torch.repeat_interleave(starts[sorted_point], n) + within]
+    second = order[torch.repeat_interleave(position + 1, n) + within]
     return first, second, camera[first] * num_cameras + camera[second]
 
 
@@ -271,9 +273,9 @@ class SchurAdjuster:
                     jb = jb * free[b, None, None]
                     u.index_add_(0, b, jb.transpose(1, 2) @ jb)
                     g_camera.index_add_(0, b, (jb.transpose(1, 2) @ fr[:, :, None])[:, :, 0])
-                    cross = ja.transpose(1, 2) @ jb
-                    off_block += [a * num_cameras + b, b * num_cameras + a]
-                    off_value += [cross, cross.transpose(1, 2)]
+                    # (b, a) gets the transpose from the symmetrization below
+                    off_block.append(a * num_cameras + b)
+                    off_value.append(ja.transpose(1, 2) @ jb)
             gradient_max = max(float(g_camera.abs().max()), float(g_point.abs().max()))
             if gradient_max <= o.gradient_tolerance:
                 converged = True
@@ -285,18 +287,27 @@ class SchurAdjuster:
                 u_damped = u + torch.diag_embed(d_camera) + (1 - free)[:, None, None] * eye6
                 v_inv = torch.linalg.inv(v + torch.diag_embed(d_point))
                 y = w @ v_inv[pt]
+                # one half H of the reduced system S = H + Hᵀ (blockwise: S_ab = H_ab +
+                # H_baᵀ): each pair of observations once, and the diagonal terms (an
+                # observation with itself, the damped camera blocks) halved
                 blocks = torch.zeros(num_cameras * num_cameras, 6, 6, dtype=dtype,
                                      device=device)
                 for start in range(0, len(pairs.first), o.pair_chunk):
                     part = slice(start, start + o.pair_chunk)
                     blocks.index_add_(0, pairs.block[part], y[pairs.first[part]] @ w[
                         pairs.second[part]].transpose(1, 2), alpha=-1)  # no negated copy
+                for start in range(0, len(cam), o.pair_chunk):
+                    part = slice(start, start + o.pair_chunk)
+                    blocks.index_add_(0, cam[part] * (num_cameras + 1),
+                                      y[part] @ w[part].transpose(1, 2), alpha=-0.5)
                 for index, value in zip(off_block, off_value):
                     blocks.index_add_(0, index, value)
                 blocks = blocks.view(num_cameras, num_cameras, 6, 6)
                 index = torch.arange(num_cameras, device=device)
-                blocks[index, index] += u_damped
-                schur = blocks.permute(0, 2, 1, 3).reshape(6 * num_cameras, 6 * num_cameras)
+                blocks[index, index] += 0.5 * u_damped
+                schur = (blocks.permute(0, 2, 1, 3) + blocks.permute(1, 3, 0, 2)).reshape(
+                    6 * num_cameras, 6 * num_cameras)
+                del blocks
                 rhs = -g_camera + torch.zeros_like(g_camera).index_add_(
                     0, cam, (y @ g_point[pt][:, :, None])[:, :, 0])
                 factor, info = torch.linalg.cholesky_ex(schur)
