@@ -4,7 +4,9 @@ time and travelled-path window, matching, essential-matrix verification ->
 bag-of-words vector, which the map stage stores).
 
 ``detect_loops(keyframes, features, vocabulary, matcher, options, seed)`` is the stage on
-explicit inputs; candidates are matched and verified on CPU threads (``cpu_threads``).
+explicit inputs; candidates are matched and verified on CPU threads (``cpu_threads``), or,
+where a batched (GPU) matcher matches them in the calling thread, verified on worker
+processes (``verifies_on_processes``).
 """
 
 from __future__ import annotations
@@ -102,8 +104,9 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
                  seed: int = 0, cache: FeatureStore | None = None, threads: int = 0,
                  database: ImageDatabase | None = None) -> tuple[list[LoopRecord], dict]:
     """Verified loops between keyframes (each found once, from its later image). Candidates
-    are matched and verified on ``threads`` CPU threads (0: every core); the result does not
-    depend on it. ``database``: ``loop_database`` of the same inputs, when already built."""
+    are matched and verified on ``threads`` CPU threads (0: every core), or verified on as
+    many worker processes after a batched matcher; the result does not depend on it.
+    ``database``: ``loop_database`` of the same inputs, when already built."""
     frames = keyframes.images_in_time_order()
     if database is None:  # (an empty database is falsy: test for None)
         database = loop_database(keyframes, features, vocabulary)

@@ -55,8 +55,9 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
                 threads: int = 0) -> dict:
     """Match and verify ``pairs`` (image names; ``cameras`` maps each image to its camera)
     into ``verified``; pairs already there are kept. Pairs are matched and verified on
-    ``threads`` CPU threads (0: every core); reads and writes of the stores stay in this
-    thread. Returns counts."""
+    ``threads`` CPU threads (0: every core), or, where a batched (GPU) matcher matches them
+    in this thread, verified on as many worker processes (``verifies_on_processes``); reads
+    and writes of the stores stay in this thread. Returns counts."""
     unknown = [name for pair in pairs for name in pair if name not in cameras]
     if unknown:
         raise CusfmError(f"the pair list names images without a camera ({unknown[0]}); "
