@@ -209,10 +209,10 @@ def with_batched_matches(items, matcher, pair_of, with_matches):
     and launched (``submit_many``) before the items of the last are given out, so a GPU
     matches while this thread reads features and pads pairs. A matcher with no batched path
     leaves ``items`` as they are (each pair is matched where it is verified)."""
-    batch = getattr(matcher, "batch_pairs", 1)
-    if batch <= 1:
+    if not matches_in_batches(matcher):
         yield from items
         return
+    batch = matcher.batch_pairs
     in_flight = None
     held, wanted = [], []
     for item in items:
@@ -231,13 +231,19 @@ def with_batched_matches(items, matcher, pair_of, with_matches):
     yield from _fill(*launched, with_matches)
 
 
+def matches_in_batches(matcher) -> bool:
+    """Whether ``with_batched_matches`` matches every pair for ``matcher`` in the calling
+    thread (its batched path), leaving the threads downstream nothing to match."""
+    return getattr(matcher, "batch_pairs", 1) > 1
+
+
 def verifies_on_processes(matcher, module: str, threads: int) -> bool:
     """Whether the verification downstream of ``with_batched_matches`` goes to worker
     processes (``process_map_jobs``) rather than threads: every pair is matched in the
     calling thread (a batched matcher: no match is left to the verification), more than one
     core is allowed and the run's fork server has imported ``module`` (the stage's, whose
     job function the workers run). Threads otherwise: an ONNX matcher matches there."""
-    return getattr(matcher, "batch_pairs", 1) > 1 and workers_ready([module], threads)
+    return matches_in_batches(matcher) and workers_ready([module], threads)
 
 
 def submit_pairs(matcher, pairs):

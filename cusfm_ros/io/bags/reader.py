@@ -121,7 +121,7 @@ class BagReader:
     def _located(self, topics: set[str]) -> tuple[list, dict[str, str]] | None:
         """The messages on ``topics`` located through the MCAP indexes, and each topic's
         message type; None where the indexes cannot give them or a topic has two types."""
-        from cusfm_ros.io.bags.mcap_index import indexed_messages, storage_files
+        from cusfm_ros.io.bags.mcap_index import indexed_messages
 
         types: dict[str, set[str]] = {}
         for connection in self._reader.connections:
@@ -129,7 +129,7 @@ class BagReader:
                 types.setdefault(connection.topic, set()).add(connection.msgtype)
         if any(len(names) != 1 for names in types.values()):
             return None
-        files = storage_files(self.path) if self.is_ros2 else None
+        files = self._mcap_files()
         located = None if files is None else indexed_messages(files, topics)
         return None if located is None else (located, {t: n.pop() for t, n in types.items()})
 
@@ -158,10 +158,16 @@ class BagReader:
         """Header stamps of every message on ``topics`` (per topic, in ``messages`` order)
         read from an MCAP bag's indexes, no message read (``mcap_index``); None where the
         bag cannot give them so (``messages`` then)."""
-        from cusfm_ros.io.bags.mcap_index import header_stamps, storage_files
+        from cusfm_ros.io.bags.mcap_index import header_stamps
 
-        files = storage_files(self.path) if self.is_ros2 else None
+        files = self._mcap_files()
         return None if files is None else header_stamps(files, topics)
+
+    def _mcap_files(self) -> list[Path] | None:
+        """The bag's MCAP files, where their indexes may be read (``mcap_index``)."""
+        from cusfm_ros.io.bags.mcap_index import storage_files
+
+        return storage_files(self.path) if self.is_ros2 else None
 
     def deserialize(self, message: RawMessage) -> Any:
         try:

@@ -261,7 +261,8 @@ class KeyframeExtractor:
             for topic, series in indexed.items():
                 stamps[image_topics[topic].name] += series
                 num_images += len(series)
-        for message in bag.messages(wanted, from_index=True):
+        # the other messages through the indexes too, where they gave the stamps
+        for message in bag.messages(wanted, from_index=indexed is not None):
             topic = message.topic
             if topic in image_topics:
                 stamps[image_topics[topic].name].append(bag.header_stamp_ns(message))

@@ -21,7 +21,7 @@ from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.retrieval.database import ImageDatabase
 from cusfm_ros.core.retrieval.loops import (LoopOptions, LoopRecord, Verification,
-                                             verify_matched, verify_pair)
+                                             verify_matched)
 from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
 from cusfm_ros.io.bow_file import read_bows, write_bows
 from cusfm_ros.io.feature_store import FeatureStore
@@ -148,20 +148,9 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
             return None
         return features[query.image_name], features[match.image_name]
 
-    def verify(item):
-        _, query, match, _, matches, computed = item
-        if match is None:
-            return None
-        f_query, f_match = features[query.image_name], features[match.image_name]
-        if matches is None:
-            matches = matcher.match(f_query, f_match)
-        return computed, matches, verify_pair(f_query, f_match, matches,
-                                              keyframes.rig[query.camera_name].camera,
-                                              keyframes.rig[match.camera_name].camera,
-                                              options, seed)
-
     def job(item):
-        """What a worker process verifies: the matched keypoints and the two cameras."""
+        """What a candidate's verification needs: the matched keypoints and the two cameras
+        (sent as it is to a worker process)."""
         _, query, match, _, matches, _ = item
         if match is None:
             return None
@@ -170,12 +159,25 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
                 keyframes.rig[query.camera_name].camera,
                 keyframes.rig[match.camera_name].camera, options, seed)
 
+    def outcome_of(item, result):
+        """(computed, matches, verification) of a candidate, None for a query's end."""
+        return None if result is None else (item[5], item[4], result)
+
+    def verify(item):
+        """Match where still needed (a matcher without a batched path) and verify, on a
+        verification thread."""
+        _, query, match, _, matches, _ = item
+        if match is not None and matches is None:
+            item = (*item[:4], matcher.match(features[query.image_name],
+                                             features[match.image_name]), item[5])
+        return outcome_of(item, verify_job(job(item)))
+
     loops, verified = [], 0
     progress = Progress("loops", len(frames), "keyframes")
     items = with_batched_matches(candidates(), matcher, pair_of,
                                  lambda item, matches: (*item[:4], matches, True))
     if verifies_on_processes(matcher, __name__, threads):
-        outcomes = ((item, None if result is None else (item[5], item[4], result))
+        outcomes = ((item, outcome_of(item, result))
                     for item, result in process_map_jobs(verify_job, items, job, threads))
     else:
         outcomes = ordered_map(verify, items, threads)

@@ -83,20 +83,9 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
             raw = cached_matches(cache, a, b)
             yield a, b, load(a), load(b), raw, raw is None
 
-    def match_and_verify(item):
-        a, b, features_a, features_b, raw, computed = item
-        if raw is None:
-            raw = matcher.match(features_a, features_b)
-        kept = raw
-        if options.verify and len(raw):
-            mask = essential_inliers(features_a.keypoints_px[raw.indices[:, 0]],
-                                     features_b.keypoints_px[raw.indices[:, 1]],
-                                     cameras[a], cameras[b], options.ransac_threshold_px, seed)
-            kept = Matches(raw.indices[mask], raw.confidences[mask])
-        return computed, raw, kept
-
     def job(item):
-        """What a worker process verifies: the matched keypoints and the two cameras."""
+        """What a pair's verification needs: the matched keypoints and the two cameras (sent
+        as it is to a worker process); None for a pair left unverified."""
         a, b, features_a, features_b, raw, _ = item
         if not (options.verify and len(raw)):
             return None
@@ -104,16 +93,24 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
                 features_b.keypoints_px[raw.indices[:, 1]], cameras[a], cameras[b],
                 options.ransac_threshold_px, seed)
 
-    def outcome(item, mask):
+    def outcome_of(item, mask):
+        """(computed, raw matches, the kept ones) of a pair and its inlier mask."""
         raw = item[4]
         return item[5], raw, raw if mask is None else Matches(raw.indices[mask],
                                                               raw.confidences[mask])
+
+    def match_and_verify(item):
+        """Match where still needed (a matcher without a batched path) and verify, on a
+        verification thread."""
+        if item[4] is None:
+            item = (*item[:4], matcher.match(item[2], item[3]), item[5])
+        return outcome_of(item, essential_job(job(item)))
 
     items = with_batched_matches(inputs(), matcher,
                                  lambda item: item[2:4] if item[4] is None else None,
                                  lambda item, raw: (*item[:4], raw, True))
     if verifies_on_processes(matcher, __name__, threads):
-        outcomes = ((item, outcome(item, mask))
+        outcomes = ((item, outcome_of(item, mask))
                     for item, mask in process_map_jobs(essential_job, items, job, threads))
     else:
         outcomes = ordered_map(match_and_verify, items, threads)

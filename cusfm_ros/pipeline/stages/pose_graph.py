@@ -31,7 +31,8 @@ from cusfm_ros.io.atomic import atomic_write
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import read_loops
 from cusfm_ros.io.tum import write_tum
-from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
+from cusfm_ros.pipeline.components import (LazyMatcher, matches_in_batches,
+                                          with_batched_matches)
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.parallel import call_on_process, chunks, ordered_map, process_map
@@ -196,7 +197,7 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
         # a batched matcher left nothing to compute: no threads to wait for the GIL beside
         # the one that feeds the GPU
         for _, item in ordered_map(missing_matches, items,
-                                   1 if getattr(matcher, "batch_pairs", 1) > 1 else threads):
+                                   1 if matches_in_batches(matcher) else threads):
             edge, query, match, partner, matches_qm, matches_pm, new_qm, new_pm = item
             if new_qm:
                 remember_matches(cache, query.image_name, match.image_name, matches_qm)
