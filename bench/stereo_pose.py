@@ -61,16 +61,19 @@ def main() -> None:
           "trans p90 | failures |\n|---|---|---|---|---|---|---|")
     for baseline in (0.12, 0.3, 0.54):
         rng = np.random.default_rng(0)
-        errors = {"stereo relative pose": [], "triangulate + PnP": []}
+        errors = {"stereo relative pose (scale from right)": [],
+                  "stereo relative pose (two essentials)": [], "triangulate + PnP": []}
         failures = dict.fromkeys(errors, 0)
         for _ in range(args.trials):
             truth, left, right, in_map, left_from_right = trial(rng, baseline)
             for name in errors:
                 try:
-                    if name == "stereo relative pose":
+                    if name.startswith("stereo relative pose"):
                         estimate = stereo_relative_pose(
-                            left, in_map, right, in_map, left_from_right,
-                            StereoPoseOptions(ransac_threshold=1.0 / FOCAL_PX)).map_from_left
+                            left, in_map, right, in_map, left_from_right, StereoPoseOptions(
+                                ransac_threshold=1.0 / FOCAL_PX,
+                                right_pair="scale" if "scale" in name else "essential")
+                        ).map_from_left
                     else:
                         estimate = pnp_baseline(left, right, in_map, left_from_right)
                 except GeometryError:

@@ -94,3 +94,20 @@ def test_the_pose_choice_is_opencvs_on_every_point():
     assert ours_mask.sum() == 400 - 30 - 10
     np.testing.assert_allclose(ours_translation, cam1_from_cam0.translation
                                / np.linalg.norm(cam1_from_cam0.translation), atol=1e-2)
+
+
+def test_sampson_distances_are_opencvs():
+    """``sampson_distances`` (normalized units, all matches at once) equals OpenCV's
+    ``sampsonDistance`` (which returns the squared distance) point by point."""
+    import cv2
+
+    from cusfm_ros.core.geometry import Rigid3, skew
+    from cusfm_ros.core.relpose.two_view import sampson_distances
+
+    rng = np.random.default_rng(5)
+    cam1_from_cam0 = Rigid3.from_rotvec(np.array([0.03, 0.1, -0.02]), np.array([0.5, 0.1, 0.9]))
+    essential = skew(cam1_from_cam0.translation) @ cam1_from_cam0.rotation
+    x0, x1 = rng.uniform(-0.6, 0.6, (50, 2)), rng.uniform(-0.6, 0.6, (50, 2))
+    expected = [np.sqrt(cv2.sampsonDistance(np.r_[a, 1.0], np.r_[b, 1.0], essential))
+                for a, b in zip(x0, x1)]
+    np.testing.assert_allclose(sampson_distances(essential, x0, x1), expected, rtol=1e-10)

@@ -79,8 +79,9 @@ def measure_loop(rig: Rig, query: LoopView, match: LoopView, matches_query_match
     """``rig_match_from_rig_query`` of one loop.
 
     ``matches_*`` are (K, 2) keypoint index pairs. With ``partner`` (the query camera's stereo
-    partner in the same rig sample) the stereo relative pose gives a metric measurement;
-    without it, ``two_view_match_from_query`` (unit translation) is scaled by the distance of
+    partner in the same rig sample) the stereo relative pose gives a metric measurement,
+    started from ``two_view_match_from_query`` when given (the loop's verification already
+    found it: no RANSAC runs again, the right pair fixes the scale); without it, ``two_view_match_from_query`` (unit translation) is scaled by the distance of
     ``prior_rig_match_from_rig_query``. Raises ``GeometryError`` when neither works. With
     ``refine=False`` a stereo measurement comes back unrefined (``refine_loops``)."""
     rig_from_q = rig[query.camera_name].rig_from_cam
@@ -96,7 +97,9 @@ def measure_loop(rig: Rig, query: LoopView, match: LoopView, matches_query_match
         q_from_p = rig_from_q.inverse() * rig[partner.camera_name].rig_from_cam
         unrefined = UnrefinedLoop(unrefined_stereo_pose(
             xq[fq & fmq], xmq[fq & fmq], xp[fp & fmp], xmp[fp & fmp], q_from_p,
-            StereoPoseOptions(ransac_threshold=1.0 / cam_q.focal_px, seed=seed)),
+            StereoPoseOptions(ransac_threshold=1.0 / cam_q.focal_px, seed=seed),
+            None if two_view_match_from_query is None else
+            (two_view_match_from_query.rotation, two_view_match_from_query.translation)),
             rig_from_q, rig_from_m)
         if not refine:
             return unrefined

@@ -94,26 +94,49 @@ def choose_pose(essential: np.ndarray, x0: np.ndarray, x1: np.ndarray, inliers: 
     the other side of ``max_depth`` than OpenCV puts them; no other difference."""
     first, second, direction = cv2.decomposeEssentialMat(essential)
     direction = direction.ravel()
-    rays0 = np.c_[x0, np.ones(len(x0))]
-    rays1 = np.c_[x1, np.ones(len(x1))]
-    b = np.einsum("ij,ij->i", rays1, rays1)
     best = None
     for rotation, translation in ((first, direction), (second, direction),
                                   (first, -direction), (second, -direction)):
-        # depth1 * ray1 = depth0 * R ray0 + t, in the least-squares sense (z = 1 rays)
-        turned = rays0 @ rotation.T
-        a = np.einsum("ij,ij->i", turned, turned)
-        c = np.einsum("ij,ij->i", turned, rays1)
-        rhs0, rhs1 = -(turned @ translation), rays1 @ translation
-        det = a * b - c * c
-        with np.errstate(divide="ignore", invalid="ignore"):
-            depth0 = (b * rhs0 + c * rhs1) / det
-            depth1 = (c * rhs0 + a * rhs1) / det
-        good = (inliers & (depth0 > 0) & (depth1 > 0) & (depth0 < max_depth)
-                & (depth1 < max_depth))
+        good = inliers & in_front(rotation, translation, x0, x1, max_depth)
         if best is None or good.sum() > best[2].sum():
             best = rotation, translation, good
     return best
+
+
+def in_front(rotation: np.ndarray, translation: np.ndarray, x0: np.ndarray, x1: np.ndarray,
+             max_depth: float = 50.0) -> np.ndarray:
+    """(K,) mask of the matched normalized points in front of both views of
+    ``cam1_from_cam0 = (rotation, translation)`` and closer than ``max_depth`` times the
+    translation's length: each point's depths from the least-squares intersection of its two
+    rays."""
+    rays0 = np.c_[x0, np.ones(len(x0))]
+    rays1 = np.c_[x1, np.ones(len(x1))]
+    b = np.einsum("ij,ij->i", rays1, rays1)
+    # depth1 * ray1 = depth0 * R ray0 + t, in the least-squares sense (z = 1 rays)
+    turned = rays0 @ np.asarray(rotation).T
+    a = np.einsum("ij,ij->i", turned, turned)
+    c = np.einsum("ij,ij->i", turned, rays1)
+    unit = np.asarray(translation) / max(float(np.linalg.norm(translation)), 1e-300)
+    rhs0, rhs1 = -(turned @ unit), rays1 @ unit
+    det = a * b - c * c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth0 = (b * rhs0 + c * rhs1) / det
+        depth1 = (c * rhs0 + a * rhs1) / det
+    return (depth0 > 0) & (depth1 > 0) & (depth0 < max_depth) & (depth1 < max_depth)
+
+
+def sampson_distances(essential: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """(K,) Sampson distances (normalized units) of matched normalized points under
+    ``essential`` (``x1' E x0 = 0``)."""
+    rays0 = np.c_[x0, np.ones(len(x0))]
+    rays1 = np.c_[x1, np.ones(len(x1))]
+    moved0 = rays0 @ np.asarray(essential).T  # E x0
+    moved1 = rays1 @ np.asarray(essential)  # E' x1
+    numerator = np.einsum("ij,ij->i", rays1, moved0)
+    denominator = (moved0[:, 0] ** 2 + moved0[:, 1] ** 2 + moved1[:, 0] ** 2
+                   + moved1[:, 1] ** 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.abs(numerator) / np.sqrt(denominator)
 
 
 def normalized_matches(keypoints0_px: np.ndarray, keypoints1_px: np.ndarray,
