@@ -206,7 +206,11 @@ class ExportStage(Stage):
     outputs = ("initial_poses", "poses", "extrinsics", "points_ply", "results_bag", "exports")
     version = 3  # 3: sparse/ has COLMAP 4 rigs and frames; exports/
     optional_outputs = ("sparse",)
-    worker_modules = (__name__, "cusfm_ros.io.colmap.readwrite")
+    # the worker writing results.mcap spent 0.7 s building rosbags' message classes (the
+    # Jazzy store imports every older distribution's) beside the text model's parts
+    # (street 300, H100 profile): the fork server imports them before the stage
+    worker_modules = (__name__, "cusfm_ros.io.colmap.readwrite",
+                      "rosbags.typesys.stores.ros2_jazzy")
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
