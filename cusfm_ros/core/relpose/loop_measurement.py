@@ -81,7 +81,8 @@ def measure_loop(rig: Rig, query: LoopView, match: LoopView, matches_query_match
     ``matches_*`` are (K, 2) keypoint index pairs. With ``partner`` (the query camera's stereo
     partner in the same rig sample) the stereo relative pose gives a metric measurement,
     started from ``two_view_match_from_query`` when given (the loop's verification already
-    found it: no RANSAC runs again, the right pair fixes the scale); without it, ``two_view_match_from_query`` (unit translation) is scaled by the distance of
+    found it: no RANSAC runs again, the right pair fixes the scale); without a partner,
+    ``two_view_match_from_query`` (unit translation) is scaled by the distance of
     ``prior_rig_match_from_rig_query``. Raises ``GeometryError`` when neither works. With
     ``refine=False`` a stereo measurement comes back unrefined (``refine_loops``)."""
     rig_from_q = rig[query.camera_name].rig_from_cam
