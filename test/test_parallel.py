@@ -12,8 +12,7 @@ import pytest
 
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.pipeline.parallel import (GIL_SWITCH_INTERVAL_S, chunks, ordered_map, process_map,
-                                        process_map_jobs, short_gil_switch, thread_count,
-                                        worker_processes)
+                                        short_gil_switch, thread_count, worker_processes)
 
 
 def test_ordered_map_keeps_the_order_on_any_thread_count():
@@ -80,21 +79,6 @@ def test_process_map_keeps_the_order_and_runs_small_work_here():
     expected = [(i, math.factorial(i)) for i in items]
     assert list(process_map(math.factorial, iter(items), 2, chunk=4, minimum=8)) == expected
     assert list(process_map(math.factorial, items, 2)) == expected  # < minimum: here
-
-
-def _square_on(job: int) -> tuple[int, int]:
-    return job * job, os.getpid()
-
-
-def test_process_map_jobs_sends_the_jobs_and_gives_back_the_items():
-    """Each item stays here (an unpicklable one too); its job goes to a worker and the
-    result comes back beside the item, in the items' order."""
-    items = [(i, lambda: None) for i in range(25)]  # a lambda does not pickle
-    out = list(process_map_jobs(_square_on, iter(items), lambda item: item[0] + 1, 2,
-                                chunk=3, minimum=4))
-    assert [item for item, _ in out] == items
-    assert [square for _, (square, _) in out] == [(i + 1) ** 2 for i in range(25)]
-    assert os.getpid() not in {pid for _, (_, pid) in out}
 
 
 def test_process_map_starts_while_the_items_are_still_coming(tmp_path):

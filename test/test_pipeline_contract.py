@@ -2,7 +2,6 @@
 (preset < command line, booleans both ways, CLI == node), and stages on explicit inputs."""
 
 import json
-import os
 import sys
 
 import numpy as np
@@ -453,12 +452,6 @@ def test_fingerprints_read_only_the_chosen_component():
     assert option_value(base, path) != option_value(other_sift, path)
 
 
-def _on_process(job):
-    """(this process's id, the job's function applied to its arguments)."""
-    function, arguments = job
-    return os.getpid(), function(arguments)
-
-
 class _BatchedKnn:
     """k-NN behind a batched interface (``batch_pairs``, ``match_many``), recording the
     batches; matching one pair at a time is an error."""
@@ -514,10 +507,8 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
     wrote, and so do two worker processes, and a matcher that matches pairs in batches."""
     import functools
 
-    import cusfm_ros.pipeline.stages.loops as loops_stage
-    import cusfm_ros.pipeline.stages.matching as matching_stage
     import cusfm_ros.pipeline.stages.pose_graph as pose_graph_stage
-    from cusfm_ros.pipeline.parallel import process_map, process_map_jobs
+    from cusfm_ros.pipeline.parallel import process_map
     from cusfm_ros.core.features.knn import KnnMatcher
     from cusfm_ros.io.feature_store import FeatureStore
     from cusfm_ros.io.loops_file import read_loops, write_loops
@@ -528,17 +519,6 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
     from cusfm_ros.pipeline.stages.matching import match_pairs
     from cusfm_ros.pipeline.stages.pose_graph import optimize_pose_graph
     from cusfm_ros.pipeline.stores import load_keyframes, open_features
-
-    calls, jobs_on = [], set()
-
-    def spy_jobs(calls, function, items, job_of, processes, **kwargs):
-        """process_map_jobs, noting the function and where each job ran."""
-        calls.append(function.__name__)
-        for item, result in process_map_jobs(_on_process, items,
-                                             lambda item: (function, job_of(item)),
-                                             processes, **kwargs):
-            jobs_on.add(result[0])
-            yield item, result[1]
 
     run = RunDir(tmp_path / "run")
     assert main(["map", str(loop_bag / "bag"), "--out", str(run.root), "--cpu-threads", "3",
@@ -563,16 +543,6 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
         assert (tmp_path / "batched.json").read_bytes() == run.loops.read_bytes()
         assert max(batched.batches) == 3
         assert sum(batched.batches) == counts["verified_candidates"] > len(loops_batched)
-        # and, as on a GPU run whose fork server is up, verified on worker processes (two
-        # chunks of two at least: this bag has fewer candidates than the default minimum)
-        monkeypatch.setattr(loops_stage, "verifies_on_processes", lambda *args: True)
-        monkeypatch.setattr(loops_stage, "process_map_jobs",
-                            functools.partial(spy_jobs, calls, chunk=2, minimum=1))
-        loops_processes, _ = detect_loops(keyframes, features, load_vocabulary(run.vocabulary),
-                                          _BatchedKnn(), options.loops, 0, threads=2)
-        write_loops(tmp_path / "processes.json", loops_processes, keyframes)
-        assert (tmp_path / "processes.json").read_bytes() == run.loops.read_bytes()
-        assert calls == ["verify_job"] and len(jobs_on) > 1 and os.getpid() not in jobs_on
         one_at_a_time = []
 
         class CountingKnn(KnnMatcher):
@@ -647,20 +617,6 @@ def test_results_do_not_depend_on_the_cpu_thread_count(loop_bag, tmp_path, monke
             assert counts["matcher_runs"] == len(pairs) == sum(batched.batches)
             assert batched.batches == [3] * (len(pairs) // 3) + [len(pairs) % 3] * (
                 len(pairs) % 3 > 0)
-            for name0, name1 in pairs:
-                assert np.array_equal(mine.matches(name0, name1).indices,
-                                      theirs.matches(name0, name1).indices)
-        # verified on worker processes
-        monkeypatch.setattr(matching_stage, "verifies_on_processes", lambda *args: True)
-        monkeypatch.setattr(matching_stage, "process_map_jobs",
-                            functools.partial(spy_jobs, calls, chunk=2, minimum=1))
-        jobs_on.clear()
-        with FeatureStore(tmp_path / "processes.h5", {}) as mine, \
-                FeatureStore(tmp_path / "plain.h5", {}, read_only=True) as theirs:
-            match_pairs(pairs, cameras, store, _BatchedKnn(), options.matching, 0, mine,
-                        threads=2)
-            assert calls[-1] == "essential_job" and len(jobs_on) > 1
-            assert os.getpid() not in jobs_on
             for name0, name1 in pairs:
                 assert np.array_equal(mine.matches(name0, name1).indices,
                                       theirs.matches(name0, name1).indices)

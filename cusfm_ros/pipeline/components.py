@@ -30,7 +30,6 @@ from cusfm_ros.core.features.xfeat import XFeatExtractor, XFeatOptions
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.models.store import ensure_models
 from cusfm_ros.pipeline.config import options_as_dict
-from cusfm_ros.pipeline.parallel import workers_ready
 
 logger = logging.getLogger(__name__)
 EXTRACTORS = ("aliked", "sift", "xfeat")
@@ -235,15 +234,6 @@ def matches_in_batches(matcher) -> bool:
     """Whether ``with_batched_matches`` matches every pair for ``matcher`` in the calling
     thread (its batched path), leaving the threads downstream nothing to match."""
     return getattr(matcher, "batch_pairs", 1) > 1
-
-
-def verifies_on_processes(matcher, module: str, threads: int) -> bool:
-    """Whether the verification downstream of ``with_batched_matches`` goes to worker
-    processes (``process_map_jobs``) rather than threads: every pair is matched in the
-    calling thread (a batched matcher: no match is left to the verification), more than one
-    core is allowed and the run's fork server has imported ``module`` (the stage's, whose
-    job function the workers run). Threads otherwise: an ONNX matcher matches there."""
-    return matches_in_batches(matcher) and workers_ready([module], threads)
 
 
 def submit_pairs(matcher, pairs):

@@ -176,26 +176,6 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
     pool.shutdown()
 
 
-def process_map_jobs(function: Callable[[Item], Result], items: Iterable, job_of: Callable,
-                     processes: int = 0, chunk: int = 4, minimum: int = 32
-                     ) -> Iterator[tuple[object, Result]]:
-    """``(item, function(job_of(item)))`` in the order of ``items``, ``function`` run on
-    worker processes (``process_map``): each item stays in this process and only its job
-    (small and picklable: the matched keypoints of a pair, not the images' features) is
-    sent. For the verification beside a GPU's feeding thread: on 15 threads it held the GIL
-    that thread waited for at every torch call (street 300, H100: the loops stage's main
-    thread spent most of its 3.2 s waiting, in LightGlue's launches and input copies)."""
-    kept: deque = deque()
-
-    def jobs():
-        for item in items:
-            kept.append(item)
-            yield job_of(item)
-
-    for _, result in process_map(function, jobs(), processes, chunk, minimum):
-        yield kept.popleft(), result
-
-
 def map_on_processes(processes: int = 0, fewest: int = 4, chunk: int = 8, minimum: int = 64
                      ) -> Callable[[Callable, Iterable], Iterable]:
     """``map(function, items)`` on ``processes`` worker processes (``process_map``'s results

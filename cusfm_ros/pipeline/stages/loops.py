@@ -4,9 +4,8 @@ time and travelled-path window, matching, essential-matrix verification ->
 bag-of-words vector, which the map stage stores).
 
 ``detect_loops(keyframes, features, vocabulary, matcher, options, seed)`` is the stage on
-explicit inputs; candidates are matched and verified on CPU threads (``cpu_threads``), or,
-where a batched (GPU) matcher matches them in the calling thread, verified on worker
-processes (``verifies_on_processes``).
+explicit inputs; candidates are matched (a batched (GPU) matcher: in the calling thread)
+and verified on CPU threads (``cpu_threads``).
 """
 
 from __future__ import annotations
@@ -27,9 +26,8 @@ from cusfm_ros.io.bow_file import read_bows, write_bows
 from cusfm_ros.io.feature_store import FeatureStore
 from cusfm_ros.io.loops_file import write_loops
 from cusfm_ros.io.vocabulary_file import load_vocabulary
-from cusfm_ros.pipeline.components import (LazyMatcher, verifies_on_processes,
-                                          with_batched_matches)
-from cusfm_ros.pipeline.parallel import ordered_map, process_map_jobs
+from cusfm_ros.pipeline.components import LazyMatcher, with_batched_matches
+from cusfm_ros.pipeline.parallel import ordered_map
 from cusfm_ros.pipeline.progress import Progress
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stores import load_keyframes, open_features, open_raw_matches
@@ -79,7 +77,7 @@ class StereoPairs:
 
 
 def verify_job(job: tuple | None) -> Verification | None:
-    """A candidate's verification on a worker process: ``verify_matched``'s arguments."""
+    """A candidate's verification: ``verify_matched``'s arguments (None: a query's end)."""
     return None if job is None else verify_matched(*job)
 
 
@@ -104,8 +102,8 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
                  seed: int = 0, cache: FeatureStore | None = None, threads: int = 0,
                  database: ImageDatabase | None = None) -> tuple[list[LoopRecord], dict]:
     """Verified loops between keyframes (each found once, from its later image). Candidates
-    are matched and verified on ``threads`` CPU threads (0: every core), or verified on as
-    many worker processes after a batched matcher; the result does not depend on it.
+    are matched (a batched matcher: in this thread) and verified on ``threads`` CPU threads
+    (0: every core); the result does not depend on it.
     ``database``: ``loop_database`` of the same inputs, when already built."""
     frames = keyframes.images_in_time_order()
     if database is None:  # (an empty database is falsy: test for None)
@@ -150,7 +148,7 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
 
     def job(item):
         """What a candidate's verification needs: the matched keypoints and the two cameras
-        (sent as it is to a worker process)."""
+        (None for a query's end)."""
         _, query, match, _, matches, _ = item
         if match is None:
             return None
@@ -176,12 +174,7 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
     progress = Progress("loops", len(frames), "keyframes")
     items = with_batched_matches(candidates(), matcher, pair_of,
                                  lambda item, matches: (*item[:4], matches, True))
-    if verifies_on_processes(matcher, __name__, threads):
-        outcomes = ((item, outcome_of(item, result))
-                    for item, result in process_map_jobs(verify_job, items, job, threads))
-    else:
-        outcomes = ordered_map(verify, items, threads)
-    for (_, query, match, score, *_), outcome in outcomes:
+    for (_, query, match, score, *_), outcome in ordered_map(verify, items, threads):
         if match is None:
             progress.step(note=f"{len(loops)} loops")
             continue
@@ -204,7 +197,6 @@ class LoopsStage(Stage):
     inputs = ("keyframes", "features", "vocabulary")
     optional_inputs = ("vocabulary_bows",)
     outputs = ("loops", "loop_bows")
-    worker_modules = (__name__,)
     version = 4  # 2: loops/bows.npz; 3: rows from vocabulary/bows.npz; 4: by stereo pair
 
     def run(self, context: StageContext) -> dict:
