@@ -2,8 +2,10 @@
 
 Random map/stereo configurations with 3D points 5-25 m away, 0.5 px noise at a 500 px focal
 length and 15 % outlier matches. The baseline triangulates the points from the stereo pair and
-solves PnP (OpenCV SQPnP + RANSAC) against the map view. Prints error distributions; asserts
-nothing. Usage: python bench/stereo_pose.py [--trials 200]
+solves PnP (OpenCV SQPnP + RANSAC) against the map view. The stereo relative pose runs both
+ways of its step 2: the scale from the right pair given the left pair's rotation (the
+default) and the right pair's own essential matrix (the paper's). Prints error
+distributions; asserts nothing. Usage: python bench/stereo_pose.py [--trials 200]
 """
 
 from __future__ import annotations
