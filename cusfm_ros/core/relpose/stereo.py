@@ -1,5 +1,6 @@
 """Stereo relative pose (paper section 4.1): the metric pose of a calibrated stereo pair
-relative to a map view, from two essential matrices and the known stereo extrinsic.
+relative to a map view, from its two images' matches with that view and the known stereo
+extrinsic.
 
 1. Essential-matrix RANSAC (OpenCV USAC) left->map gives the rotation and unit translation
    direction ``map_from_left = (R_ml, s1 d_ml)`` (or a verified two-view pose of the left

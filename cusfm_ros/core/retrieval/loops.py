@@ -73,29 +73,22 @@ def verify_pair(features0: Features, features1: Features, matches: Matches,
                 camera0: CameraBase, camera1: CameraBase, options: LoopOptions,
                 seed: int = 0) -> Verification:
     """Essential-matrix RANSAC between two calibrated views; accept on enough inliers."""
-    return verify_matched(features0.keypoints_px[matches.indices[:, 0]],
-                          features1.keypoints_px[matches.indices[:, 1]], camera0, camera1,
-                          options, seed)
-
-
-def verify_matched(keypoints0_px: np.ndarray, keypoints1_px: np.ndarray, camera0: CameraBase,
-                   camera1: CameraBase, options: LoopOptions, seed: int = 0) -> Verification:
-    """``verify_pair`` on the matched keypoints alone ((K, 2) each, row k of one matched to
-    row k of the other): what a worker process is sent."""
-    count = len(keypoints0_px)
-    if count < max(options.min_inliers, 5):
-        return Verification(False, 0, count)
-    x0, x1, front = normalized_matches(keypoints0_px, keypoints1_px, camera0, camera1)
+    if len(matches) < max(options.min_inliers, 5):
+        return Verification(False, 0, len(matches))
+    x0, x1, front = normalized_matches(features0.keypoints_px[matches.indices[:, 0]],
+                                       features1.keypoints_px[matches.indices[:, 1]],
+                                       camera0, camera1)
     if front.sum() < options.min_inliers:
-        return Verification(False, 0, count)
+        return Verification(False, 0, len(matches))
     result = estimate_two_view(x0[front], x1[front], TwoViewOptions(
         threshold_normalized(options.ransac_threshold_px, camera0, camera1),
         max_iterations=ransac_iterations(options.min_inlier_ratio), seed=seed))
     if not result.success:
-        return Verification(False, 0, count)
+        return Verification(False, 0, len(matches))
     inliers = result.num_inliers
-    accepted = (inliers >= options.min_inliers and inliers >= options.min_inlier_ratio * count)
-    return Verification(accepted, inliers, count, result.rotation,
+    accepted = (inliers >= options.min_inliers
+                and inliers >= options.min_inlier_ratio * len(matches))
+    return Verification(accepted, inliers, len(matches), result.rotation,
                         result.translation_direction)
 
 

@@ -19,8 +19,7 @@ from cusfm_ros.core.features.types import Features
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.retrieval.database import ImageDatabase
-from cusfm_ros.core.retrieval.loops import (LoopOptions, LoopRecord, Verification,
-                                             verify_matched)
+from cusfm_ros.core.retrieval.loops import LoopOptions, LoopRecord, verify_pair
 from cusfm_ros.core.retrieval.vocabulary import VocabularyTree
 from cusfm_ros.io.bow_file import read_bows, write_bows
 from cusfm_ros.io.feature_store import FeatureStore
@@ -74,11 +73,6 @@ class StereoPairs:
     def key(self, keyframe) -> tuple:
         """The same for both images of a stereo pair."""
         return (keyframe.sample_id, *sorted(k.camera_name for k in self.images(keyframe)))
-
-
-def verify_job(job: tuple | None) -> Verification | None:
-    """A candidate's verification: ``verify_matched``'s arguments (None: a query's end)."""
-    return None if job is None else verify_matched(*job)
 
 
 def loop_database(keyframes: KeyframeSet, features: dict[str, Features],
@@ -146,29 +140,20 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
             return None
         return features[query.image_name], features[match.image_name]
 
-    def job(item):
-        """What a candidate's verification needs: the matched keypoints and the two cameras
-        (None for a query's end)."""
-        _, query, match, _, matches, _ = item
+    def verify(item):
+        """(computed, matches, verification) of a candidate, None for a query's end: matched
+        here where still needed (a matcher without a batched path), on a verification
+        thread."""
+        _, query, match, _, matches, computed = item
         if match is None:
             return None
-        return (features[query.image_name].keypoints_px[matches.indices[:, 0]],
-                features[match.image_name].keypoints_px[matches.indices[:, 1]],
-                keyframes.rig[query.camera_name].camera,
-                keyframes.rig[match.camera_name].camera, options, seed)
-
-    def outcome_of(item, result):
-        """(computed, matches, verification) of a candidate, None for a query's end."""
-        return None if result is None else (item[5], item[4], result)
-
-    def verify(item):
-        """Match where still needed (a matcher without a batched path) and verify, on a
-        verification thread."""
-        _, query, match, _, matches, _ = item
-        if match is not None and matches is None:
-            item = (*item[:4], matcher.match(features[query.image_name],
-                                             features[match.image_name]), item[5])
-        return outcome_of(item, verify_job(job(item)))
+        f_query, f_match = features[query.image_name], features[match.image_name]
+        if matches is None:
+            matches = matcher.match(f_query, f_match)
+        return computed, matches, verify_pair(f_query, f_match, matches,
+                                              keyframes.rig[query.camera_name].camera,
+                                              keyframes.rig[match.camera_name].camera,
+                                              options, seed)
 
     loops, verified = [], 0
     progress = Progress("loops", len(frames), "keyframes")

@@ -42,12 +42,6 @@ class MatchingOptions:
             raise ConfigError("matching: ransac_threshold_px > 0 and min_inliers >= 8")
 
 
-def essential_job(job: tuple | None):
-    """A pair's verification: ``essential_inliers``' arguments, or None for a pair left
-    unverified."""
-    return None if job is None else essential_inliers(*job)
-
-
 def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
                 features: FeatureStore, matcher, options: MatchingOptions, seed: int,
                 verified: FeatureStore, cache: FeatureStore | None = None,
@@ -83,28 +77,19 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
             raw = cached_matches(cache, a, b)
             yield a, b, load(a), load(b), raw, raw is None
 
-    def job(item):
-        """What a pair's verification needs: the matched keypoints and the two cameras; None
-        for a pair left unverified."""
-        a, b, features_a, features_b, raw, _ = item
-        if not (options.verify and len(raw)):
-            return None
-        return (features_a.keypoints_px[raw.indices[:, 0]],
-                features_b.keypoints_px[raw.indices[:, 1]], cameras[a], cameras[b],
-                options.ransac_threshold_px, seed)
-
-    def outcome_of(item, mask):
-        """(computed, raw matches, the kept ones) of a pair and its inlier mask."""
-        raw = item[4]
-        return item[5], raw, raw if mask is None else Matches(raw.indices[mask],
-                                                              raw.confidences[mask])
-
     def match_and_verify(item):
-        """Match where still needed (a matcher without a batched path) and verify, on a
-        verification thread."""
-        if item[4] is None:
-            item = (*item[:4], matcher.match(item[2], item[3]), item[5])
-        return outcome_of(item, essential_job(job(item)))
+        """(computed, raw matches, the kept ones) of a pair: matched here where still needed
+        (a matcher without a batched path), on a verification thread."""
+        a, b, features_a, features_b, raw, computed = item
+        if raw is None:
+            raw = matcher.match(features_a, features_b)
+        kept = raw
+        if options.verify and len(raw):
+            mask = essential_inliers(features_a.keypoints_px[raw.indices[:, 0]],
+                                     features_b.keypoints_px[raw.indices[:, 1]],
+                                     cameras[a], cameras[b], options.ransac_threshold_px, seed)
+            kept = Matches(raw.indices[mask], raw.confidences[mask])
+        return computed, raw, kept
 
     items = with_batched_matches(inputs(), matcher,
                                  lambda item: item[2:4] if item[4] is None else None,

@@ -185,7 +185,7 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
     # every refinement on one thread of this process, which on 16 cores would be the tail
     # (1,378 loops x ~1 ms against ~0.4 s for their RANSACs on 15 workers). A loop's stereo
     # measurement now starts from its verified two-view pose and takes the scale from the
-    # right pair: no RANSAC at all (street 200, 2 cores: the stage 2.7 -> 2.0 s)
+    # right pair: no RANSAC at all (street 200, 2 cores: the stage 2.7 -> 2.0-2.5 s)
     items = with_batched_matches(inputs(), matcher, query_pair,
                                  lambda item, found: (*item[:4], found, item[5], True, item[7]))
     items = with_batched_matches(items, matcher, partner_pair,
