@@ -196,37 +196,3 @@ def test_the_matching_stage_offers_early_work_only_for_a_batched_matcher():
     knn = replace(torch, features=replace(torch.features, matcher=replace(
         torch.features.matcher, name="knn")))
     assert early_raw_matches(None, knn) is None
-
-
-def test_the_map_built_beside_the_export_is_the_map_built_after_it(small_stereo_bag,
-                                                                    tmp_path, monkeypatch):
-    """From 4 threads the map stage's map is built beside the export; its files are those of
-    the map built in the stage's own turn."""
-    from cusfm_ros.cli.main import main
-    from cusfm_ros.pipeline.stages.map_store import MapStoreStage
-
-    args = ["--min-translation-m", "0.3", "--features", "sift", "--max-keypoints", "512",
-            "--set", "vocabulary.depth=3", "--cpu-threads", "4"]
-    built_early = []
-    real = MapStoreStage.prefetch
-
-    def recorded(self, context):
-        work = real(self, context)
-        built_early.append(work is not None)
-        return work
-
-    monkeypatch.setattr(MapStoreStage, "prefetch", recorded)
-    assert main(["map", str(small_stereo_bag / "bag"), "--out", str(tmp_path / "early"),
-                 *args]) == 0
-    assert built_early == [True]
-    monkeypatch.setattr(MapStoreStage, "prefetch_after", None)
-    assert main(["map", str(small_stereo_bag / "bag"), "--out", str(tmp_path / "late"),
-                 *args]) == 0
-    assert built_early == [True]
-    early = sorted(p.relative_to(tmp_path / "early") for p in
-                   (tmp_path / "early" / "map").rglob("*") if p.is_file())
-    assert early and early == sorted(p.relative_to(tmp_path / "late") for p in
-                                     (tmp_path / "late" / "map").rglob("*") if p.is_file())
-    for path in early:
-        assert (tmp_path / "early" / path).read_bytes() == \
-            (tmp_path / "late" / path).read_bytes(), path

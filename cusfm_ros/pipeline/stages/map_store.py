@@ -30,7 +30,6 @@ from cusfm_ros.io.map_store import write_map_store
 from cusfm_ros.io.tum import read_tum
 from cusfm_ros.io.vocabulary_file import load_vocabulary
 from cusfm_ros.pipeline.config import options_as_dict
-from cusfm_ros.pipeline.parallel import thread_count
 from cusfm_ros.pipeline.stage import Stage, StageContext
 from cusfm_ros.pipeline.stages.vocabulary import build_vocabulary
 from cusfm_ros.pipeline.stores import load_keyframes, open_features
@@ -132,50 +131,32 @@ class MapStoreStage(Stage):
     optional_inputs = ("vocabulary", "loop_bows", "vocabulary_bows")
     outputs = ("map_dir",)
 
-    prefetch_after = "mapping"
-
-    def prefetch(self, context: StageContext):
-        """The map built beside the export, which leaves this process waiting for its worker
-        processes (they write the COLMAP model's parts); from 4 cores, where the export has
-        3 or more of them (0.6-0.8 s of map stage at 300 street frames on the GPU machines,
-        most of it building the map, not writing it)."""
-        if thread_count(context.options.cpu_threads) < 4:
-            return None
-        return lambda cancelled: prior_map_of(context.run, context.options)
-
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
         started = time.perf_counter()
-        prior_map = context.prefetched.result() if context.prefetched is not None else None
-        if prior_map is None:
-            prior_map = prior_map_of(run, options)
+        if not run.mapping_summary.is_file():
+            raise CusfmError(f"{run.mapping_dir} is incomplete; run the mapping stage first")
+        world_from_rig = read_tum(run.mapping_poses)
+        keyframes = refined_keyframes(load_keyframes(run), world_from_rig,
+                                      {name: c.rig_from_cam for name, c in
+                                       read_extrinsics(run.mapping_extrinsics).cameras.items()})
+        points = read_map_points(run.mapping_points)
+        with open_features(run, options) as store:
+            bow_rows = None
+            if run.vocabulary.is_file():
+                vocabulary = load_vocabulary(run.vocabulary).use_device(options.device)
+                # the loops stage's rows, else the vocabulary stage's (loops skipped)
+                for known in (run.loop_bows, run.vocabulary_bows):
+                    if known.is_file():
+                        bow_rows = read_bows(known, vocabulary)
+                        break
+            else:  # the vocabulary stage was skipped: localization still needs one
+                vocabulary, _ = build_vocabulary(
+                    [store.features(k.image_name).descriptors for k in keyframes.keyframes],
+                    options.vocabulary, options.seed, options.device)
+            prior_map = build_prior_map(keyframes, world_from_rig, points, store, vocabulary,
+                                        features_section(options), bow_rows)
         manifest = write_map_store(run.map_dir, prior_map, run.mapping_poses.read_text())
         logger.info("map: %s in %.1f s -> %s", manifest["counts"],
                     time.perf_counter() - started, run.map_dir)
         return manifest["counts"]
-
-
-def prior_map_of(run, options) -> PriorMap:
-    """The map of a run directory's mapping results (what the stage writes)."""
-    if not run.mapping_summary.is_file():
-        raise CusfmError(f"{run.mapping_dir} is incomplete; run the mapping stage first")
-    world_from_rig = read_tum(run.mapping_poses)
-    keyframes = refined_keyframes(load_keyframes(run), world_from_rig,
-                                  {name: c.rig_from_cam for name, c in
-                                   read_extrinsics(run.mapping_extrinsics).cameras.items()})
-    points = read_map_points(run.mapping_points)
-    with open_features(run, options) as store:
-        bow_rows = None
-        if run.vocabulary.is_file():
-            vocabulary = load_vocabulary(run.vocabulary).use_device(options.device)
-            # the loops stage's rows, else the vocabulary stage's (loops skipped)
-            for known in (run.loop_bows, run.vocabulary_bows):
-                if known.is_file():
-                    bow_rows = read_bows(known, vocabulary)
-                    break
-        else:  # the vocabulary stage was skipped: localization still needs one
-            vocabulary, _ = build_vocabulary(
-                [store.features(k.image_name).descriptors for k in keyframes.keyframes],
-                options.vocabulary, options.seed, options.device)
-        return build_prior_map(keyframes, world_from_rig, points, store, vocabulary,
-                               features_section(options), bow_rows)
