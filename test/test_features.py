@@ -90,6 +90,35 @@ def test_lightglue_onnx_equals_torch(aliked, lightglue, motorcycle):
     np.testing.assert_array_equal(ours.indices, reference.numpy())
 
 
+@pytest.mark.parametrize("weights", ["aliked-lightglue", "xfeat-lighterglue"])
+def test_lightglue_built_without_memory_equals_one_initialized_then_loaded(weights):
+    """``load_lightglue`` builds the net on the meta device and assigns the loaded tensors
+    (no random initialization to overwrite): every parameter on the CPU, the same scores."""
+    from cusfm_ros.models.build import load_lightglue
+    from cusfm_ros.models.nets.lightglue import LightGlueNet
+    from cusfm_ros.models.weights import weights_path
+
+    fast = load_lightglue(weights)
+    state = torch.load(weights_path(weights), map_location="cpu", weights_only=True)
+    if weights == "xfeat-lighterglue":
+        reference = LightGlueNet(input_dim=64, dim=96, heads=1, layers=6)
+        state = {k[len("matcher."):]: v for k, v in state.items() if k.startswith("matcher.")}
+    else:
+        reference = LightGlueNet()
+    reference.load_reference_state_dict(state)
+    assert {p.device.type for p in fast.parameters()} == {"cpu"}
+    assert sum(p.numel() for p in fast.parameters()) == \
+        sum(p.numel() for p in reference.parameters())
+    generator = torch.Generator().manual_seed(0)
+    dim = reference.input_proj.in_features
+    inputs = (torch.rand(1, 300, 2, generator=generator) * 2 - 1,
+              torch.rand(1, 280, 2, generator=generator) * 2 - 1,
+              torch.nn.functional.normalize(torch.randn(1, 300, dim, generator=generator), dim=-1),
+              torch.nn.functional.normalize(torch.randn(1, 280, dim, generator=generator), dim=-1))
+    with torch.inference_mode():
+        assert torch.equal(fast(*inputs), reference.eval()(*inputs))
+
+
 def test_fused_attention_equals_the_exported_graph(aliked, motorcycle, monkeypatch):
     """``fuse_attention`` (scaled-dot-product attention, the torch backend's) gives the explicit
     graph's log assignment to rounding, padded (masked) or not, and the same matches."""

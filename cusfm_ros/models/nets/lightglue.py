@@ -245,10 +245,11 @@ class LightGlueNet(nn.Module):
             layer.self_attn.unmasked = layer.cross_attn.unmasked = unmasked
         return self
 
-    def load_reference_state_dict(self, state_dict: dict) -> None:
+    def load_reference_state_dict(self, state_dict: dict, assign: bool = False) -> None:
+        """``assign``: the tensors become the parameters (a net built on the meta device)."""
         # the published file also holds a non-persistent buffer of confidence thresholds
         state = {k: v for k, v in state_dict.items() if k != "confidence_thresholds"}
-        self.load_state_dict(state, strict=True)
+        self.load_state_dict(state, strict=True, assign=assign)
 
     def forward(self, kpts0: torch.Tensor, kpts1: torch.Tensor, desc0: torch.Tensor,
                 desc1: torch.Tensor, mask0: torch.Tensor | None = None,
