@@ -43,7 +43,6 @@ from cusfm_ros.io.run_lock import run_dir_lock
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.forked import can_fork_beside, run_forked_beside
 from cusfm_ros.pipeline.parallel import start_process_server, thread_count
-from cusfm_ros.pipeline.prefetch import Prefetch
 from cusfm_ros.pipeline.stage import Stage, StageContext
 
 logger = logging.getLogger(__name__)
@@ -233,7 +232,6 @@ class StageRunner:
             current = None
             run.complete_marker.unlink(missing_ok=True)
             self._report(run, bag, entries, 0.0, steps, {"status": "running"})
-            prefetches: dict[str, Prefetch] = {}
             try:
                 for index, stage in enumerate(s for s in self.stages if s.name in steps):
                     current = stage.name
@@ -241,15 +239,11 @@ class StageRunner:
                                 len(steps))
                     stage_started = _process_age_s()
                     entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite,
-                                                          beside if index == 0 else None,
-                                                          prefetches.pop(stage.name, None))
+                                                          beside if index == 0 else None)
                     self._timeline["stages"][stage.name] = [stage_started, _process_age_s()]
-                    self._start_prefetches(stage.name, steps, run, bag, prefetches)
                     if after_stage is not None:
                         after_stage(stage.name)
             except BaseException as exc:
-                for prefetch in prefetches.values():
-                    prefetch.cancel()
                 self._drop_orphans(run)
                 digests.save()
                 error = str(exc) or type(exc).__name__
@@ -293,42 +287,17 @@ class StageRunner:
             return False
         return device != "cuda" or nvidia_gpu_present()
 
-    def _start_prefetches(self, done: str, steps: list[str], run: RunDir, bag,
-                          prefetches: dict[str, Prefetch]) -> None:
-        """The early work (``Stage.prefetch``) of the stages to run that wait for ``done``,
-        started on threads."""
-        for stage in self.stages:
-            if stage.prefetch_after != done or stage.name not in steps:
-                continue
-            work = stage.prefetch(StageContext(run, self.options,
-                                               Path(bag) if bag is not None else None))
-            if work is not None:
-                prefetches[stage.name] = Prefetch(stage.name, work)
-
     def _run_stage(self, stage: Stage, run: RunDir, bag, digests: DigestCache,
-                   overwrite: bool, beside: Callable[[], None] | None = None,
-                   prefetched: Prefetch | None = None) -> dict:
+                   overwrite: bool, beside: Callable[[], None] | None = None) -> dict:
         """Run ``stage`` unless it is up to date; ``beside``: work for this process while a
-        forked child runs the stage (``pipeline/forked.py``), done here either way;
-        ``prefetched``: the stage's early work, cancelled where the stage is reused."""
-        try:
-            return self._run_stage_with(stage, run, bag, digests, overwrite, beside,
-                                        prefetched)
-        finally:
-            if prefetched is not None:
-                prefetched.cancel()  # done by now where the stage ran
-
-    def _run_stage_with(self, stage: Stage, run: RunDir, bag, digests: DigestCache,
-                        overwrite: bool, beside: Callable[[], None] | None,
-                        prefetched: Prefetch | None) -> dict:
+        forked child runs the stage (``pipeline/forked.py``), done here either way."""
         for artifact in stage.inputs:
             if not getattr(run, artifact).exists():
                 producer = self.producer.get(artifact, "?")
                 raise CusfmError(f"{getattr(run, artifact)} is missing: run the {producer} "
                                  f"stage first (the {stage.name} stage reads it; e.g. "
                                  f"--steps {producer} {stage.name})")
-        context = StageContext(run, self.options, Path(bag) if bag is not None else None,
-                               prefetched=prefetched)
+        context = StageContext(run, self.options, Path(bag) if bag is not None else None)
         context.input_digests = {a: digests.digest(getattr(run, a))
                                  for a in stage.inputs + stage.optional_inputs}
         own_options = {path: option_value(self.options, path) for path in stage.reads}

@@ -14,8 +14,6 @@ which localization, map update and fleet runs call with their own.
 from __future__ import annotations
 
 import logging
-import threading
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -38,10 +36,6 @@ class StageContext:
     resuming: bool = False
     """A killed run of this stage with the same fingerprint is being redone: stores may keep
     their complete entries (each entry has a completion flag)."""
-    prefetched: Any = None
-    """The stage's ``prefetch`` work, started beside earlier stages: ``result()`` waits for it
-    and gives its result, or None where it failed (the stage then does that work itself).
-    None when no such work ran."""
 
 
 class Stage:
@@ -69,16 +63,6 @@ class Stage:
     worker_modules: ClassVar[tuple[str, ...]] = ()
     """Modules the stage's worker processes need: the runner starts the fork server with
     the run, and it imports them while the earlier stages work (``start_process_server``)."""
-
-    prefetch_after: ClassVar[str | None] = None
-    """A stage whose outputs suffice for part of this stage's work: once it is done, the
-    runner starts ``prefetch``'s work on a thread, beside the stages in between."""
-
-    def prefetch(self, context: StageContext) -> Callable[[threading.Event], Any] | None:
-        """Work that needs only the outputs of ``prefetch_after`` and earlier stages (called
-        with an event set when the run stops; it then returns soon), or None for none here.
-        Its result reaches ``run`` as ``context.prefetched``; it writes nothing itself."""
-        return None
 
     def external_inputs(self, context: StageContext) -> dict[str, Any]:
         """Identities of inputs outside the run directory (the bag, an extrinsics file)."""

@@ -1,9 +1,7 @@
 """Stage ``matching``: match every pair of ``pairs/pairs.txt`` and keep the matches that agree
 with one essential matrix -> ``matching/matches.h5`` (resumable per pair).
 
-Raw matches already computed (loops, pose graph) come from the run's raw-match cache; with a
-batched GPU matcher, those of the sequential and extrinsic pairs are computed beside the pose
-graph (``early_raw_matches``, the stage's ``prefetch``).
+Raw matches already computed (loops, pose graph) come from the run's raw-match cache.
 ``match_pairs(pairs, cameras, features, matcher, options, seed, verified)`` is the stage on
 explicit inputs (a localizer matches its query against map keyframes the same way).
 """
@@ -11,14 +9,11 @@ explicit inputs (a localizer matches its query against map keyframes the same wa
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 from cusfm_ros.core.cameras import CameraBase
 from cusfm_ros.core.features.types import Matches
-from cusfm_ros.core.graph.pairs import select_pairs
 from cusfm_ros.core.relpose.two_view import essential_inliers
 from cusfm_ros.errors import ConfigError, CusfmError
 from cusfm_ros.io.feature_store import FeatureStore
@@ -47,69 +42,16 @@ class MatchingOptions:
             raise ConfigError("matching: ransac_threshold_px > 0 and min_inliers >= 8")
 
 
-def raw_matches(pairs: list[tuple[str, str]], features: FeatureStore, matcher,
-                cancelled: threading.Event | None = None) -> dict[tuple[str, str], Matches]:
-    """The matcher's raw matches of ``pairs`` (image names), batched where the matcher
-    batches; stops early (with what it has) once ``cancelled`` is set."""
-    loaded: dict = {}
-
-    def items():
-        for index, (a, b) in enumerate(pairs):
-            if cancelled is not None and cancelled.is_set():
-                return
-            if index % 64 == 0:  # keep the images of the pairs near this one only
-                near = {n for pair in pairs[index:index + 256] for n in pair}
-                for name in [n for n in loaded if n not in near]:
-                    del loaded[name]
-            for name in (a, b):
-                if name not in loaded:
-                    loaded[name] = features.features(name)
-            yield a, b, loaded[a], loaded[b], None
-
-    found = {}
-    for a, b, features_a, features_b, raw in with_batched_matches(
-            items(), matcher, lambda item: item[2:4], lambda item, raw: (*item[:4], raw)):
-        found[a, b] = matcher.match(features_a, features_b) if raw is None else raw
-    return found
-
-
-def early_raw_matches(run, options) -> Callable[[threading.Event], dict] | None:
-    """The matching stage's work that needs only the keyframes and the features, for a
-    thread beside the pose graph: the raw matches of the view graph's sequential and
-    extrinsic pairs (the loop pairs need the loops; their matches are mostly in the raw-match
-    cache already). Only for a matcher that batches pairs on a GPU, which the pose graph
-    leaves idle while its main thread waits for its worker processes; None otherwise (a CPU
-    matcher there would take the cores the pose graph uses)."""
-    matcher = LazyMatcher(options.features, options.device)
-    if options.pairs.mode != "view_graph" or matcher.batch_pairs <= 1:
-        return None
-
-    def work(cancelled: threading.Event) -> dict:
-        started = time.perf_counter()
-        keyframes = load_keyframes(run)
-        pairs = [(a, b) for a, b, _ in select_pairs(keyframes, [], options.pairs).pairs]
-        with open_features(run, options) as store:
-            found = raw_matches(pairs, store, matcher, cancelled)
-        if not cancelled.is_set():
-            logger.info("matching: %d sequential and extrinsic pairs matched early, beside "
-                        "the stages before, in %.1f s", len(found),
-                        time.perf_counter() - started)
-        return found
-    return work
-
-
 def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
                 features: FeatureStore, matcher, options: MatchingOptions, seed: int,
                 verified: FeatureStore, cache: FeatureStore | None = None,
-                threads: int = 0, early: dict[tuple[str, str], Matches] | None = None
-                ) -> dict:
+                threads: int = 0) -> dict:
     """Match and verify ``pairs`` (image names; ``cameras`` maps each image to its camera)
     into ``verified``; pairs already there are kept. Pairs are matched (a batched (GPU)
     matcher: in this thread) and verified on ``threads`` CPU threads (0: every core); reads
-    and writes of the stores stay in this thread. ``early``: raw matches of some pairs
-    computed before (``early_raw_matches``), used where ``cache`` has none. Returns counts.
-    (Verification on worker processes beside a batched matcher was tried: street 300 on the
-    H200, the stage 1.7-1.8 s against 1.3-1.5 s on threads.)"""
+    and writes of the stores stay in this thread. Returns counts. (Verification on worker
+    processes beside a batched matcher was tried: street 300 on the H200, the stage 1.7-1.8 s
+    against 1.3-1.5 s on threads.)"""
     unknown = [name for pair in pairs for name in pair if name not in cameras]
     if unknown:
         raise CusfmError(f"the pair list names images without a camera ({unknown[0]}); "
@@ -133,10 +75,7 @@ def match_pairs(pairs: list[tuple[str, str]], cameras: dict[str, CameraBase],
                 for name in [n for n in loaded if n not in near]:
                     del loaded[name]
             raw = cached_matches(cache, a, b)
-            computed = raw is None
-            if computed and early:
-                raw = early.pop((a, b), None)
-            yield a, b, load(a), load(b), raw, computed
+            yield a, b, load(a), load(b), raw, raw is None
 
     def match_and_verify(item):
         """(computed, raw matches, the kept ones) of a pair: matched here where still needed
@@ -176,10 +115,6 @@ class MatchingStage(Stage):
     reads = ("matching", "features.matcher", "seed")
     inputs = ("keyframes", "pairs", "features")
     outputs = ("verified_matches",)
-    prefetch_after = "loops"  # beside the pose graph
-
-    def prefetch(self, context: StageContext):
-        return early_raw_matches(context.run, context.options)
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
@@ -190,10 +125,9 @@ class MatchingStage(Stage):
         with open_features(run, options) as store, \
                 open_raw_matches(run, options, context.input_digests["features"]) as cache, \
                 open_verified(run, options, write=True, recover=context.resuming) as verified:
-            early = context.prefetched.result() if context.prefetched is not None else None
             counts = match_pairs(read_pairs(run.pairs), cameras, store,
                                  LazyMatcher(options.features, options.device),
                                  options.matching, options.seed, verified, cache,
-                                 options.cpu_threads, early)
+                                 options.cpu_threads)
         logger.info("matching: %s in %.1f s", counts, time.perf_counter() - started)
         return counts
