@@ -12,6 +12,12 @@ another checkout (its ``bench`` and ``cusfm_ros``) on the same inputs: the lent 
 machines differ by up to 2x in CPU speed and some vary between runs, so only alternating
 runs on one machine compare two versions.
 
+Before the first timed run on a device, one untimed process (``warm_up``) imports what the
+runs import and starts the GPU's libraries: on a fresh lent machine the first process reads
+them from disk (its first convolution took 404 ms, the next processes' 65-87 ms), which had
+fallen on the first timed run, always "this, 1" of an alternation. ``--no-warm-up`` leaves
+it out.
+
 Installs nothing: run it where ``make test`` runs, on a machine with a GPU. Writes
 ``OUT/gpu.json`` and ``OUT/gpu.md`` after every run. A run past the time limit is a row
 that says so.
@@ -27,6 +33,40 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import compare  # noqa: E402 - the bench folder is not a package
+
+
+WARM_UP = """
+import sys, time
+started = time.perf_counter()
+import cusfm_ros.cli.main  # noqa: F401 - the CLI's imports (numpy, OpenCV, SciPy, h5py)
+device = sys.argv[1]
+try:
+    import torch
+except ImportError:
+    torch = None
+if torch is not None and device == "cuda" and torch.cuda.is_available():
+    with torch.inference_mode():
+        images = torch.zeros(2, 3, 64, 64, device="cuda")
+        torch.nn.Conv2d(3, 8, 3, padding=1).cuda()(images)
+        torch.nn.Linear(64, 64).cuda()(torch.zeros(8, 64, device="cuda"))
+        queries = torch.zeros(1, 4, 64, 64, device="cuda", dtype=torch.float16)
+        torch.nn.functional.scaled_dot_product_attention(queries, queries, queries)
+        torch.cuda.synchronize()
+print(f"{time.perf_counter() - started:.1f}")
+"""
+"""What ``warm_up`` runs in a fresh interpreter: ``python -c WARM_UP DEVICE``."""
+
+
+def warm_up(device: str, root: Path | None = None) -> float | None:
+    """Seconds of one untimed process that imports the CLI and, on ``cuda``, runs a
+    convolution, a linear layer and an attention on the GPU, from ``root`` (a checkout;
+    None: this one); None where it failed (the timed runs then say why)."""
+    root = root or Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", WARM_UP, device], cwd=root,
+                          capture_output=True, text=True, timeout=300)
+    if done.returncode != 0:
+        return None
+    return float(done.stdout.split()[-1])
 
 
 class GpuBusy:
@@ -141,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="runs of each frame count and device")
     parser.add_argument("--against", type=Path, metavar="OTHER_CHECKOUT",
                         help="another checkout's root: each run is followed by one of it")
+    parser.add_argument("--no-warm-up", dest="warm_up", action="store_false",
+                        help="no untimed process before a device's first run")
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
@@ -156,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     if system not in compare.SYSTEMS:
         parser.error(f"{system} is not a system of bench/compare.py")
     rows = []
+    warmed: set[str] = set()
     for frames in args.frames:
         spec_path, spec = compare.prepare("street", out / "inputs", frames, args.image_size)
         for device in args.devices:
@@ -163,6 +206,11 @@ def main(argv: list[str] | None = None) -> int:
                                      time_limit_s=args.time_limit_s,
                                      cusfm_args=[a for kv in args.set for a in ("--set", kv)])
             codes = [("this", None)] + ([("against", args.against)] if args.against else [])
+            if args.warm_up and device not in warmed:
+                warmed.add(device)
+                seconds = warm_up(device)
+                print(f"warm-up on {device} (untimed): " + (
+                    "failed" if seconds is None else f"{seconds:.1f} s"), flush=True)
             for index in range(1, args.repeat + 1):
                 for code, root in codes:
                     name = f"{frames}_{device}" + ("" if len(codes) == 1 and args.repeat == 1

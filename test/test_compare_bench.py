@@ -86,6 +86,18 @@ def test_gpu_bench_runs_each_device_and_reports_the_stages(bench_out):
     assert gpu.outside_parts({**row, "timeline_s": None}) is None
 
 
+def test_the_warm_up_imports_the_cli_in_a_fresh_process_and_says_when_it_cannot(tmp_path):
+    """``warm_up`` runs the untimed process from a checkout's root, whose cusfm_ros it
+    imports: seconds from this one, None from one whose package does not import."""
+    import gpu
+
+    seconds = gpu.warm_up("cpu")
+    assert seconds is not None and 0 < seconds < 120
+    (tmp_path / "cusfm_ros").mkdir()
+    (tmp_path / "cusfm_ros" / "__init__.py").write_text("raise ImportError('broken')\n")
+    assert gpu.warm_up("cpu", tmp_path) is None
+
+
 def test_gpu_busy_is_the_mean_of_nvidia_smis_samples_over_a_run(tmp_path, monkeypatch):
     """The GPU's busy share and most memory in use over a cuda run, from nvidia-smi's samples
     (a stand-in here that prints three and waits to be stopped); none for a CPU run or
@@ -154,9 +166,12 @@ def test_gpu_bench_alternates_with_another_checkout(bench_out, tmp_path, capsys)
     made = bench_out / "inputs"  # the input of the test above, when it ran (else made here)
     for entry in made.iterdir() if made.is_dir() else ():
         (out / "inputs" / entry.name).symlink_to(entry)
+    capsys.readouterr()
     assert gpu.main(["--out", str(out), "--frames", "30", "--devices", "cpu", "--features",
                      "sift", "--image-size", "640", "240", "--against", str(other),
                      "--repeat", "2"]) == 0
+    assert len(re.findall(r"warm-up on cpu \(untimed\): \d+\.\d s",
+                          capsys.readouterr().out)) == 1  # once, before the first run
     rows = json.loads((out / "gpu.json").read_text())["rows"]
     assert [(r["code"], r["run"], r["failed"]) for r in rows] == [
         ("this", 1, None), ("against", 1, None), ("this", 2, None), ("against", 2, None)]
