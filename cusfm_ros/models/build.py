@@ -57,8 +57,9 @@ def load_lightglue(weights: str = "aliked-lightglue"):
 
     state = torch.load(weights_path(weights), map_location="cpu", weights_only=True)
     # built without memory (the meta device), then given the loaded tensors: the random
-    # initialization of its 240 parameters, which the weights replace, took 0.05-0.14 s of
-    # every run that matches (the net has no buffers to leave behind on the meta device)
+    # initialization of its 253 parameter tensors, which the weights replace, took
+    # 0.05-0.14 s of every run that matches (the net has no buffers to leave on the meta
+    # device)
     with torch.device("meta"):
         if weights == "xfeat-lighterglue":
             # the file also holds the extractor it was trained with, under ``extractor.``
