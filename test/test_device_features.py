@@ -16,10 +16,21 @@ def _features(rng, n, dim=8, size=(640, 480)):
 
 
 def test_padded_batches_equal_the_host_batch_and_mark_the_real_points(rng):
-    from cusfm_ros.models.device_features import DeviceFeatures, split
+    from cusfm_ros.models.device_features import DeviceFeatures
 
-    resident = DeviceFeatures(torch, torch.device("cpu"))
-    images = [_features(rng, n) for n in (5, 3, 7)]
+    # images of two sizes in one upload, then with one image's keypoints in float64: each
+    # normalized by its own size, as normalize_keypoints does it image by image, to the bit
+    images = [_features(rng, 5), _features(rng, 3, size=(1241, 376)), _features(rng, 7)]
+    mixed = images[:2] + [Features(images[2].keypoints_px.astype(np.float64) + 1 / 3,
+                                   images[2].scores, images[2].descriptors,
+                                   images[2].image_size)]
+    for batch in (images, mixed):
+        _check_padded_batches(DeviceFeatures(torch, torch.device("cpu")), batch)
+
+
+def _check_padded_batches(resident, images):
+    from cusfm_ros.models.device_features import split
+
     pairs = list(zip(images, images[::-1]))
     for size in (7, 12):  # the largest image's count, and rounded up past it
         padded = resident.padded_pairs(pairs, (size, size + 1))

@@ -113,9 +113,26 @@ def _expected(a, b, mask):
     return (out if mask is None else out * mask, a.sum(0))
 
 
-def test_a_shape_is_captured_on_its_second_pass_and_replayed_with_new_inputs_after():
+def test_a_shape_is_captured_on_its_first_pass_and_replayed_with_new_inputs_after():
+    rng = np.random.default_rng(4)
+    passes, cuda = _passes(name="first pass test")
+    results = []
+    for rows, mask in [(5, False), (5, False), (6, False), (5, True), (5, False)]:
+        inputs = _inputs(rng, rows, mask)
+        results.append((passes(*inputs), _expected(*inputs)))
+    # every signature captured at its first pass (5 rows, 6 rows, the mask), no eager pass
+    assert len(passes) == 3 and passes.replays == 5
+    counts = pass_counts()["first pass test"]
+    assert (counts.get("eager", 0), counts["captured"], counts["replayed"]) == (0, 3, 5)
+    assert cuda.gc_during_capture == [False] * 3 and cuda.emptied == 1
+    for ours, theirs in results:
+        for got, want in zip(ours, theirs):
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
+
+
+def test_from_the_second_pass_a_shape_seen_once_runs_eagerly():
     rng = np.random.default_rng(0)
-    passes, cuda = _passes(name="shapes test")
+    passes, cuda = _passes(name="shapes test", capture_from=2)
     results = []
     for rows, mask in [(5, False), (5, False), (5, False), (6, False), (5, True), (5, False)]:
         inputs = _inputs(rng, rows, mask)
@@ -143,7 +160,7 @@ def test_a_shape_is_captured_on_its_second_pass_and_replayed_with_new_inputs_aft
 
 def test_without_copies_a_replay_gives_the_graphs_own_outputs_which_the_next_replay_reuses():
     rng = np.random.default_rng(2)
-    passes, _ = _passes(copy_outputs=False)
+    passes, _ = _passes(copy_outputs=False, capture_from=2)
     first, second, third = (passes(*_inputs(rng, 4)) for _ in range(3))
     assert first[0] is not second[0] and second[0] is third[0]  # eager, then the graph's
     inputs = _inputs(rng, 4)
@@ -164,7 +181,7 @@ def test_a_value_that_is_not_a_tensor_is_part_of_the_signature_and_reaches_the_p
         x = torch.from_numpy(rng.normal(size=(4, 2)))
         torch.testing.assert_close(passes(x, doubled)[0], x * 2 if doubled else x + 1,
                                    rtol=0, atol=0)
-    assert len(passes) == 2 and passes.replays == 4
+    assert len(passes) == 2 and passes.replays == 6  # each captured at its first pass
 
 
 def test_no_more_graphs_than_the_bound_and_a_failed_capture_runs_as_it_is(caplog):
@@ -174,7 +191,7 @@ def test_no_more_graphs_than_the_bound_and_a_failed_capture_runs_as_it_is(caplog
         inputs = _inputs(rng, rows)
         for got, want in zip(passes(*inputs), _expected(*inputs)):
             torch.testing.assert_close(got, want, rtol=0, atol=0)
-    assert len(passes) == 2 and passes.replays == 2  # 5 rows: past the bound, eager
+    assert len(passes) == 2 and passes.replays == 4  # 5 rows: past the bound, eager
     assert cuda.emptied == 1  # the warm-up's cached blocks, before the first capture only
 
     passes, cuda = _passes()
@@ -209,4 +226,4 @@ def test_cuda_graph_replays_equal_eager_passes_on_a_gpu():
             mask = torch.rand(x.shape[:2], device="cuda", generator=generator) > 0.3
             for got, want in zip(passes(x, mask), run(x, mask)):
                 torch.testing.assert_close(got, want, rtol=0, atol=0)
-    assert len(passes) == 1 and passes.replays == 4
+    assert len(passes) == 2 and passes.replays == 6  # each shape from its first pass

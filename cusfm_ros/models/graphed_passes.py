@@ -8,8 +8,13 @@ feeds the GPU a few milliseconds per pass, more while the verification threads h
 torch's ``make_graphed_callables`` is for training (it builds backward graphs and wants fixed
 inputs given up front); ``torch.compile(mode="reduce-overhead")`` compiles for tens of seconds
 per run. This module does the one thing needed: a graph per input signature, captured on the
-signature's second pass (most shapes of a run recur; one seen once is not worth a capture),
-all in one memory pool, replayed under a lock.
+signature's first pass (``capture_from``), all in one memory pool, replayed under a lock.
+
+Captured on a signature's second pass instead, each shape's first pass ran eagerly: beside
+the 15 verification threads that hold the GIL, an eager LightGlue pass (~400 torch calls)
+cost the feeding thread ~100 ms against ~45 ms for a capture, whose kernels are recorded and
+not launched (street 300, H100: 7 eager passes and 6 captures in the loops stage, ~1.0 s of
+its 3.5 s). A shape seen once costs a capture instead of an eager pass, and its graph.
 """
 
 from __future__ import annotations
@@ -75,9 +80,10 @@ class GraphedPasses:
     """``run(*inputs)`` (tensors on one CUDA device, and other values that decide what the
     pass does, such as None or a flag) returning a tuple of tensors, replayed from a CUDA
     graph per signature (each tensor's shape and dtype, each other value itself) from that
-    signature's second call on. ``context()`` is entered around every eager
-    run and capture (autocast and the matmul precision: a replay keeps what was captured);
-    it must not use autocast's weight cache, whose casts would be freed under the graph.
+    signature's ``capture_from``-th call on (1: its first). ``context()`` is entered around
+    every eager run and capture (autocast and the matmul precision: a replay keeps what was
+    captured); it must not use autocast's weight cache, whose casts would be freed under the
+    graph.
 
     The result of a replay is a copy: the graph's own output tensors are overwritten by its
     next replay, perhaps from another thread. ``copy_outputs`` False returns them as they
@@ -86,8 +92,10 @@ class GraphedPasses:
     batch). Nothing here is valid on a CPU device."""
 
     def __init__(self, torch, run: Callable, context: Callable = contextlib.nullcontext,
-                 max_graphs: int = 64, copy_outputs: bool = True, name: str = "passes") -> None:
+                 max_graphs: int = 64, copy_outputs: bool = True, name: str = "passes",
+                 capture_from: int = 1) -> None:
         self.torch, self.run, self.context, self.max_graphs = torch, run, context, max_graphs
+        self.capture_from = capture_from
         self.copy_outputs, self.name = copy_outputs, name
         self._graphs: dict[tuple, tuple] = {}
         self._seen: Counter = Counter()
@@ -134,7 +142,8 @@ class GraphedPasses:
 
     def _worth_capturing(self, key: tuple) -> bool:
         self._seen[key] += 1
-        return self.enabled and self._seen[key] >= 2 and len(self._graphs) < self.max_graphs
+        return (self.enabled and self._seen[key] >= self.capture_from
+                and len(self._graphs) < self.max_graphs)
 
     def _capture(self, key: tuple, inputs: tuple):
         """The graph of ``run`` on ``inputs``, which become its static inputs; None (and no
