@@ -868,16 +868,16 @@ def test_aliked_replayed_as_a_cuda_graph_gives_the_features_of_the_uncaptured_ne
             np.testing.assert_allclose(ours.keypoints_px, theirs.keypoints_px, atol=1e-4)
             np.testing.assert_allclose(ours.scores, theirs.scores, atol=1e-5)
             np.testing.assert_allclose(ours.descriptors, theirs.descriptors, atol=1e-5)
-    assert len(graphed._pass) == 1 and graphed._pass.replays == 2
+    assert len(graphed._pass) == 1 and graphed._pass.replays == 3  # captured at once
 
 
 @pytest.mark.gpu
 @pytest.mark.parametrize("half_precision", [False, True])
 def test_lightglue_passes_replayed_as_cuda_graphs_give_the_matches_of_uncaptured_ones(
         motorcycle, half_precision):
-    """A shape's first pass runs as it is, its second is captured and replayed, later ones are
-    replayed with new inputs: the matches of each pair are those of the uncaptured pass and,
-    in fp32, those of the matcher without graphs (padded to other sizes)."""
+    """A shape's first pass is captured and replayed, later ones are replayed with new
+    inputs: the matches of each pair are those of the same passes run as they are and, in
+    fp32, those of the matcher without graphs (padded to other sizes)."""
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
     from cusfm_ros.core.features.lightglue import LightGlueOptions
@@ -892,13 +892,18 @@ def test_lightglue_passes_replayed_as_cuda_graphs_give_the_matches_of_uncaptured
     graphed = TorchLightGlueMatcher(LightGlueOptions(**options))
     assert graphed.graphed is not None
     runs = [graphed.match_many(pairs) for _ in range(3)]
-    assert len(graphed.graphed) == 1 and graphed.graphed.replays == 5  # 1 eager pass
+    assert len(graphed.graphed) == 1 and graphed.graphed.replays == 6  # captured at once
+    uncaptured = TorchLightGlueMatcher(LightGlueOptions(**options))
+    uncaptured.graphed.enabled = False  # the same padding, every pass run as it is
+    eager = uncaptured.match_many(pairs)
+    assert len(uncaptured.graphed) == 0 and uncaptured.graphed.replays == 0
     plain = TorchLightGlueMatcher(LightGlueOptions(**options, cuda_graphs=False))
     assert plain.graphed is None
     reference = plain.match_many(pairs)
     for index, matches in enumerate(runs[0]):
         assert len(matches) > 300
-        for other in [runs[1][index], runs[2][index]] + [reference[index]] * (not half_precision):
+        for other in ([runs[1][index], runs[2][index], eager[index]]
+                      + [reference[index]] * (not half_precision)):
             np.testing.assert_array_equal(other.indices, matches.indices)
             np.testing.assert_allclose(other.confidences, matches.confidences, atol=1e-4)
 
@@ -919,7 +924,7 @@ def test_lightglue_graphs_pad_both_sides_to_one_size(motorcycle):
     options = dict(device="cuda", batch_pairs=2, half_precision=False)
     graphed = TorchLightGlueMatcher(LightGlueOptions(**options))
     runs = [graphed.match_many(pairs) for _ in range(2)]
-    assert len(graphed.graphed) == 1 and graphed.graphed.replays == 3  # 1 eager pass
+    assert len(graphed.graphed) == 1 and graphed.graphed.replays == 4  # captured at once
     reference = TorchLightGlueMatcher(LightGlueOptions(**options, cuda_graphs=False)
                                       ).match_many(pairs)
     for run in runs:

@@ -54,7 +54,8 @@ def _count(name: str, **amounts: float) -> None:
 
 def pass_counts() -> dict[str, dict[str, float]]:
     """Every ``GraphedPasses``' passes in this process so far, by name: ``eager`` (run as
-    they are: a signature's first pass, or captures off), ``captured`` (with ``capture_s``)
+    they are: a signature's passes before ``capture_from``, past ``max_graphs``, or with
+    captures off), ``captured`` (with ``capture_s``)
     and ``replayed``; the runner records each stage's share in its report entry."""
     with _COUNTS_LOCK:
         return {name: dict(counts) for name, counts in _COUNTS.items()}
