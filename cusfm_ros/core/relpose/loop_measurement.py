@@ -53,14 +53,14 @@ class UnrefinedLoop:
                                "stereo")
 
 
-def refine_loops(measured: list, device: str = "cpu") -> list:
+def refine_loops(measured: list) -> list:
     """``measured`` with every ``UnrefinedLoop`` refined (all in one ``StereoRefiner``
-    solve, its point arithmetic on ``device``) into a ``LoopMeasurement``, or into the
-    ``GeometryError`` message when its refinement failed; other items unchanged."""
+    solve) into a ``LoopMeasurement``, or into the ``GeometryError`` message when its
+    refinement failed; other items unchanged."""
     pending = [i for i, item in enumerate(measured) if isinstance(item, UnrefinedLoop)]
     if not pending:
         return list(measured)
-    refined = StereoRefiner(device=device).solve([measured[i].stereo.problem for i in pending])
+    refined = StereoRefiner().solve([measured[i].stereo.problem for i in pending])
     out = list(measured)
     for i, map_from_left in zip(pending, refined):
         try:

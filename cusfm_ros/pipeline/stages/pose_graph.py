@@ -17,15 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cusfm_ros.core.accelerator import Arrays
 from cusfm_ros.core.features.types import Features
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.graph.pose_graph import (LoopConstraint, PoseGraphOptimizer,
                                               PoseGraphOptions, PoseGraphResult)
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.relpose.loop_measurement import (LoopMeasurement, LoopView,
-                                                      UnrefinedLoop, measure_loop,
-                                                      refine_loops)
+                                                      measure_loop, refine_loops)
 from cusfm_ros.core.retrieval.loops import LoopRecord
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import GeometryError
@@ -113,29 +111,16 @@ _LOOPS_PER_TASK = 8
 in fours or more, 2.3 alone, scipy's least squares 4.0; street 300, one core)."""
 
 
-def _measure_unrefined(arguments: list[tuple]) -> list[LoopMeasurement | UnrefinedLoop | str]:
-    """``measure_loop`` of a few loops (in a worker process), their stereo refinements left
-    to do; a failed loop gives why."""
+def _measure_all(arguments: list[tuple]) -> list[LoopMeasurement | str]:
+    """``measure_loop`` of a few loops (in a worker process), their stereo refinements in
+    one solve; a failed loop gives why."""
     measured = []
     for loop_arguments in arguments:
         try:
             measured.append(measure_loop(*loop_arguments, refine=False))
         except GeometryError as exc:
             measured.append(str(exc))
-    return measured
-
-
-def _measure_all(arguments: list[tuple]) -> list[LoopMeasurement | str]:
-    """``_measure_unrefined``, then their stereo refinements in one solve."""
-    return refine_loops(_measure_unrefined(arguments))
-
-
-def _refinement_device(device: str) -> str | None:
-    """Where the loops' stereo refinements run after the workers' measurements, in one solve
-    in this process: ``cuda`` where the run has a GPU, else None (each worker refines its
-    own loops: on 16 CPU cores one solve here would be the tail). The refinements were two
-    thirds of the workers' time (street 300, H100 machine: 559 of 840 samples)."""
-    return None if Arrays.for_device(device).torch is None else "cuda"
+    return refine_loops(measured)
 
 
 def _solve(arguments: tuple) -> PoseGraphResult:
@@ -148,12 +133,11 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                         features: dict[str, Features], matcher,
                         options: PoseGraphOptions = PoseGraphOptions(), frame_type: str = "rig",
                         seed: int = 0, cache: FeatureStore | None = None,
-                        extra: list[LoopConstraint] = (), threads: int = 0,
-                        device: str = "cpu") -> PoseGraphOutput:
+                        extra: list[LoopConstraint] = (), threads: int = 0
+                        ) -> PoseGraphOutput:
     """Refined world_from_rig per rig sample. ``extra`` constraints join the measured ones
     (benchmarks inject false loops). Missing matches are computed on ``threads`` CPU threads
-    (0: every core); the result does not depend on it. ``device``: where the loops' stereo
-    refinements run (``cuda``, or ``auto`` with a GPU: all in one solve there)."""
+    (0: every core); the result does not depend on it."""
     rig = keyframes.rig
     graph = _Graph(keyframes, frame_type)
     images = {k.image_name: k for k in keyframes.keyframes}
@@ -232,13 +216,9 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                 matches_pm.indices if matches_pm is not None else None,
                 edge.two_view, prior, seed)
 
-    refine_on = _refinement_device(device)
     measured_all = [measured for _, part in process_map(
-        _measure_all if refine_on is None else _measure_unrefined,
-        chunks(measurements(), _LOOPS_PER_TASK), threads, chunk=1, minimum=8)
+        _measure_all, chunks(measurements(), _LOOPS_PER_TASK), threads, chunk=1, minimum=8)
         for measured in part]
-    if refine_on is not None:
-        measured_all = refine_loops(measured_all, refine_on)
     constraints, kinds, skipped = [], {}, []
     for index, measured in enumerate(measured_all):
         edge, query, match = measured_items[index][:3]
@@ -300,8 +280,7 @@ class PoseGraphStage(Stage):
             output = optimize_pose_graph(keyframes, loops, features,
                                          LazyMatcher(options.features, options.device),
                                          options.pose_graph, options.frame_type, options.seed,
-                                         cache, extra, options.cpu_threads,
-                                         options.device)
+                                         cache, extra, options.cpu_threads)
         write_tum(run.pose_graph_poses, output.world_from_rig)
         with atomic_write(run.pose_graph_summary) as handle:
             json.dump(output.summary, handle, indent=2)
