@@ -22,7 +22,6 @@ from collections import OrderedDict
 import numpy as np
 
 from cusfm_ros.core.features.lightglue import normalize_keypoints
-
 from cusfm_ros.core.features.types import Features
 
 

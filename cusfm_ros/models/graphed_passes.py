@@ -13,8 +13,9 @@ signature's first pass (``capture_from``), all in one memory pool, replayed unde
 Captured on a signature's second pass instead, each shape's first pass ran eagerly: beside
 the 15 verification threads that hold the GIL, an eager LightGlue pass (~400 torch calls)
 cost the feeding thread ~100 ms against ~45 ms for a capture, whose kernels are recorded and
-not launched (street 300, H100: 7 eager passes and 6 captures in the loops stage, ~1.0 s of
-its 3.5 s). A shape seen once costs a capture instead of an eager pass, and its graph.
+not launched (street 300, H100 profile: 7 eager passes and 6 captures in the loops stage,
+~0.75 s of its main thread; with this and whole-batch uploads the stage took 3.3 / 3.3 s
+against 3.4 / 3.6). A shape seen once costs a capture instead of an eager pass, and its graph.
 """
 
 from __future__ import annotations
@@ -55,8 +56,8 @@ def _count(name: str, **amounts: float) -> None:
 def pass_counts() -> dict[str, dict[str, float]]:
     """Every ``GraphedPasses``' passes in this process so far, by name: ``eager`` (run as
     they are: a signature's passes before ``capture_from``, past ``max_graphs``, or with
-    captures off), ``captured`` (with ``capture_s``)
-    and ``replayed``; the runner records each stage's share in its report entry."""
+    captures off), ``captured`` (with ``capture_s``) and ``replayed``; the runner records
+    each stage's share in its report entry."""
     with _COUNTS_LOCK:
         return {name: dict(counts) for name, counts in _COUNTS.items()}
 

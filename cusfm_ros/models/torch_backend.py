@@ -484,8 +484,8 @@ class TorchLightGlueMatcher:
         multiple = self.options.pad_multiple
         if self.graphed is not None:
             # few shapes, so that each is captured once and replayed often: both sides padded
-            # to one size (the street's loop passes took 16 shapes, each captured then, for
-            # 72 passes at 300 frames)
+            # to one size (sides padded apart, the street's loop passes took 16 shapes for 72
+            # passes at 300 frames)
             size = np.full(2, graph_side(int(counts.max()), multiple))
         else:
             size = -(-counts.max(0) // multiple) * multiple
