@@ -1071,6 +1071,30 @@ def test_stages_share_one_torch_matcher_per_configuration():
     assert make_matcher(stricter, "cpu").options.filter_threshold == 0.2
 
 
+def test_the_auto_backend_runs_the_networks_on_torch_where_torch_has_the_gpu(monkeypatch):
+    """``backend: auto``: torch for a CUDA GPU that ORT cannot use, asked for (``cuda``) or
+    found (``auto``, unless the extractor resizes); ORT otherwise. The default ``auto``
+    device on a GPU machine with the CPU onnxruntime ran the networks on the CPU."""
+    from cusfm_ros.pipeline import components
+    from cusfm_ros.pipeline.components import FeatureOptions
+
+    def machine(torch_gpu: bool, ort_gpu: bool) -> None:
+        monkeypatch.setattr(components, "has_gpu_provider", lambda: ort_gpu)
+        monkeypatch.setattr(components, "cuda_torch",
+                            lambda device: object() if torch_gpu and device != "cpu" else None)
+
+    auto, onnx, torch_ = (FeatureOptions(backend=b) for b in ("auto", "onnx", "torch"))
+    machine(torch_gpu=True, ort_gpu=False)
+    assert auto.use_torch("auto") and auto.use_torch("cuda") and not auto.use_torch("cpu")
+    assert not auto.use_torch("auto", resizes=True)  # the torch extractors do not resize
+    assert not onnx.use_torch("auto") and torch_.use_torch("cpu")
+    machine(torch_gpu=True, ort_gpu=True)  # onnxruntime-gpu: ORT keeps the GPU
+    assert not auto.use_torch("auto") and not auto.use_torch("cuda")
+    machine(torch_gpu=False, ort_gpu=False)  # no GPU (CI): ORT on the CPU
+    assert not auto.use_torch("auto") and not auto.use_torch("cpu")
+    assert auto.use_torch("cuda")  # asked for: the torch extractor says torch sees no GPU
+
+
 def test_aliked_fixed_shape_pass_gives_the_variable_passs_features(motorcycle):
     """``fixed_shape_pass``: the torch extractor's whole pass with fixed shapes gives each
     image the keypoints, scores and descriptors of the variable-size detection, a capped
