@@ -25,6 +25,7 @@ import numpy as np
 from cusfm_ros.cli.main import main as cusfm
 from cusfm_ros.core.evaluation import AteOptions, absolute_trajectory_error
 from cusfm_ros.core.trajectory import Trajectory
+from cusfm_ros.errors import EvaluationError
 from cusfm_ros.io.convert.sequence import BODY_FROM_OPTICAL
 from cusfm_ros.io.tum import read_tum
 
@@ -39,7 +40,10 @@ def row(label: str, truth: Trajectory, estimate: Trajectory | None, seconds: flo
         registered: str, metric: bool) -> str:
     if estimate is None:
         return f"| {label} | — | — | — | {registered} | {seconds:.1f} |"
-    sim3 = absolute_trajectory_error(truth, estimate, AteOptions(align="sim3")).rmse
+    try:
+        sim3 = absolute_trajectory_error(truth, estimate, AteOptions(align="sim3")).rmse
+    except EvaluationError:  # a peer's model of two images: nothing to align (COLMAP's)
+        return f"| {label} | — | — | — | {registered} (too few to align) | {seconds:.1f} |"
     se3 = (f"{absolute_trajectory_error(truth, estimate, AteOptions(align='se3')).rmse:.3f}"
            if metric else "(scale free)")
     error = f"{100 * (length_m(estimate) / length_m(truth) - 1):+.2f} %" if metric else "—"
