@@ -200,3 +200,21 @@ def test_peer_bundle_adjusters_reach_gtsams_optimum(solver):
     assert problem.cost() > 10 * reference  # the start is off the optimum
     assert adjusted.cost() == pytest.approx(reference, rel=1e-6)
     assert stats["iterations"] >= 1 and np.isfinite(stats["seconds"])
+
+
+def test_real_bench_row_of_a_peer_model_too_small_to_align():
+    """bench/real.py: a peer's model of two images (COLMAP's incremental mapper on the KITTI
+    clip, 2026-12-07) is a row that says so; a whole one gets its ATE."""
+    from real import row
+
+    from cusfm_ros.core.trajectory import Trajectory
+
+    world_from_body = np.stack([np.eye(4)] * 6)
+    world_from_body[:, :3, 3] = [[0, 0, 0], [1, 0, 0], [2, 1, 0], [3, 1, 1], [4, 3, 1],
+                                 [5, 2, 2]]
+    truth = Trajectory(np.arange(6) * 10**8, world_from_body)
+    two = Trajectory(truth.stamps_ns[:2], truth.world_from_body[:2])
+    assert row("peer", truth, two, 1.0, "2 of 6, 1 model", False) == (
+        "| peer | — | — | — | 2 of 6, 1 model (too few to align) | 1.0 |")
+    assert row("ours", truth, truth, 2.0, "6 of 6", True) == (
+        "| ours | 0.000 | 0.000 | +0.00 % | 6 of 6 | 2.0 |")
