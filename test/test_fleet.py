@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -67,6 +68,7 @@ def fleet_run(tmp_path_factory):
     broken = _truncated_copy(sim / "bag_session3", root / "truncated")
     fleet = root / "fleet"
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    before = set(Path(tempfile.gettempdir()).glob("pymp-*"))
     process = subprocess.Popen(
         [sys.executable, "-m", "cusfm_ros.cli.main", "fleet", str(sim / "bag"),
          str(sim / "bag_session2"), str(sim / "bag_session3"), str(broken), "--out",
@@ -74,6 +76,10 @@ def fleet_run(tmp_path_factory):
         env=env)
     killed = _kill_during_features(fleet, process)
     output, _ = process.communicate(timeout=900)
+    # multiprocessing's folders of the Ray workers (ended without their exit handlers) went
+    # in the fleet's own temporary folder, removed after the run: none is left in /tmp
+    left = set(Path(tempfile.gettempdir()).glob("pymp-*")) - before
+    assert not left, left
     return sim, fleet, process.returncode, output, killed
 
 

@@ -195,7 +195,9 @@ def test_kill_9_in_a_stage_then_rerun_gives_the_uninterrupted_result(small_stere
     command = _map_command(small_stereo_bag)
     run = tmp_path / "run"
     record = run / "stages" / f"{stage}.json"
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # the killed run cannot remove multiprocessing's temporary folder: it goes in tmp_path
+    (tmp_path / "tmp").mkdir()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "TMPDIR": str(tmp_path / "tmp")}
     process = subprocess.Popen(command + ["--out", str(run)] + FAST_MAP_ARGS, env=env,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120

@@ -115,17 +115,22 @@ def _pid_after_sleep(folder: str) -> int:
 def test_workers_end_when_the_process_that_owns_them_is_killed(tmp_path):
     """A caller killed outright (SIGKILL, or a SIGTERM it does not handle) cannot shut its
     pool down: its workers notice it is gone and end instead of waiting forever."""
+    pids, temporary = tmp_path / "pids", tmp_path / "tmp"
+    pids.mkdir()
+    temporary.mkdir()
     script = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
               "from test_parallel import _pid_after_sleep\n"
               "from cusfm_ros.pipeline.parallel import process_map\n"
-              f"for _ in process_map(_pid_after_sleep, [{str(tmp_path)!r}] * 400, 2, chunk=1,"
+              f"for _ in process_map(_pid_after_sleep, [{str(pids)!r}] * 400, 2, chunk=1,"
               " minimum=2): pass\n")
-    owner = subprocess.Popen([sys.executable, "-c", script])
+    # the killed owner cannot remove multiprocessing's temporary folder: it goes in tmp_path
+    owner = subprocess.Popen([sys.executable, "-c", script],
+                             env={**os.environ, "TMPDIR": str(temporary)})
     deadline = time.monotonic() + 60
-    while len(list(tmp_path.iterdir())) < 2:
+    while len(list(pids.iterdir())) < 2:
         assert time.monotonic() < deadline and owner.poll() is None, "no worker started"
         time.sleep(0.1)
-    workers = [int(p.name) for p in tmp_path.iterdir()]
+    workers = [int(p.name) for p in pids.iterdir()]
     owner.kill()
     owner.wait()
     deadline = time.monotonic() + 15

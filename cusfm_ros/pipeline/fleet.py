@@ -34,6 +34,7 @@ import json
 import logging
 import os
 import resource
+import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -173,7 +174,10 @@ class FleetMapper:
         self.options = options
         self.fleet = fleet
 
-    def _start_ray(self):
+    def _start_ray(self, scratch: str):
+        """``scratch``: the local workers' temporary folder (``TMPDIR``), removed after the
+        run: Ray ends its workers without their exit handlers, which left each one's
+        multiprocessing folder (``pymp-*``) in /tmp."""
         import ray
 
         env = {k: v for k, v in os.environ.items() if k.startswith("CUSFM_")}
@@ -183,8 +187,8 @@ class FleetMapper:
         else:
             # a local instance listens on the loopback only
             ray.init(num_cpus=self.fleet.workers or os.cpu_count(), include_dashboard=False,
-                     runtime_env={"env_vars": env}, log_to_driver=False,
-                     _node_ip_address="127.0.0.1")
+                     runtime_env={"env_vars": {**env, "TMPDIR": scratch}},
+                     log_to_driver=False, _node_ip_address="127.0.0.1")
         gpus = ray.cluster_resources().get("GPU", 0)
         logger.info("fleet: Ray %s, %d CPUs, %d GPUs", ray.__version__,
                     int(ray.cluster_resources().get("CPU", 0)), int(gpus))
@@ -205,16 +209,18 @@ class FleetMapper:
         started = time.perf_counter()
         names = session_names(bags)
         bag_of = dict(zip(names, (str(Path(b).resolve()) for b in bags)))
-        ray, gpus = self._start_ray()
-        try:
-            sessions, dropped = self._map_sessions(ray, gpus, out, names, bag_of)
-            vocabulary, start = None, base_map
-            if base_map is None and sessions:
-                vocabulary, start = self._vocabulary(ray, out, names, sessions)
-            merges, final = self._merge(ray, gpus, out, names, bag_of, sessions, dropped,
-                                        start, base_map is not None)
-        finally:
-            ray.shutdown()
+        with tempfile.TemporaryDirectory(prefix="cusfm-fleet-",
+                                         ignore_cleanup_errors=True) as scratch:
+            ray, gpus = self._start_ray(scratch)
+            try:
+                sessions, dropped = self._map_sessions(ray, gpus, out, names, bag_of)
+                vocabulary, start = None, base_map
+                if base_map is None and sessions:
+                    vocabulary, start = self._vocabulary(ray, out, names, sessions)
+                merges, final = self._merge(ray, gpus, out, names, bag_of, sessions, dropped,
+                                            start, base_map is not None)
+            finally:
+                ray.shutdown()
         trajectories = self._trajectories(out, final, names, sessions, dropped)
         report = {"format": "cusfm_fleet_report/1",
                   "status": "complete" if final is not None else "failed",
