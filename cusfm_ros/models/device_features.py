@@ -115,12 +115,11 @@ class DeviceFeatures:
         host = self.torch.empty((rows, columns), dtype=self.torch.float32, pin_memory=cuda)
         block = host.numpy()
         if len({f.keypoints_px.dtype for f in images}) == 1:
-            # normalize_keypoints of each image (in its keypoints' precision, to the bit),
-            # its image size repeated over its rows
-            size = np.repeat(np.array([f.image_size for f in images], np.float32), counts,
-                             axis=0)
-            keypoints = np.concatenate([f.keypoints_px for f in images])
-            block[:, KEYPOINTS] = (keypoints - size / 2) / (size.max(axis=1, keepdims=True) / 2)
+            # all images' keypoints at once, each with its image's size (the same bits as
+            # image by image, in the keypoints' precision)
+            block[:, KEYPOINTS] = normalize_keypoints(
+                np.concatenate([f.keypoints_px for f in images]),
+                np.repeat(np.array([f.image_size for f in images]), counts, axis=0))
         else:  # keypoints of mixed precision: each image's in its own
             start = 0
             for features, count in zip(images, counts):

@@ -93,9 +93,13 @@ class LighterGlueOptions(LightGlueOptions):
     half_precision: bool = False
 
 
-def normalize_keypoints(keypoints_px: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+def normalize_keypoints(keypoints_px: np.ndarray, image_size) -> np.ndarray:
+    """(N, 2) pixels -> LightGlue's coordinates: centred, divided by half the image's larger
+    side. ``image_size``: (width, height), or (N, 2) of them, one per keypoint (many images'
+    keypoints at once)."""
     size = np.asarray(image_size, np.float32)
-    return ((keypoints_px - size / 2) / (size.max() / 2)).astype(np.float32)
+    return ((keypoints_px - size / 2) / (size.max(axis=-1, keepdims=True) / 2)
+            ).astype(np.float32)
 
 
 def adaptive_matches(result, threshold: float) -> Matches:
