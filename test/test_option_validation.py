@@ -6,8 +6,11 @@ import pytest
 from cusfm_ros.cli.main import main
 
 CASES = [
-    (["--max-keypoints", "-1"], "ALIKED: max_keypoints, resize_max_px and threads must be >= 0"),
-    (["--resize-max-px", "-5"], "got 2048, -5 and 0"),
+    (["--max-keypoints", "-1"], "ALIKED: max_keypoints, resize_max_px, threads and runs_at_once "
+                                "must be >= 0"),
+    (["--resize-max-px", "-5"], "got 2048, -5, 0 and 0"),
+    (["--set", "features.extractor.aliked.runs_at_once=-2"], "got 2048, 0, 0 and -2"),
+    (["--set", "features.matcher.lightglue.runs_at_once=-1"], "runs_at_once >= 0"),
     (["--set", "features.extractor.sift.max_keypoints=-3"], "SIFT: max_keypoints"),
     (["--set", "features.extractor.sift.contrast_threshold=0"], "contrast_threshold must be > 0"),
     (["--set", "features.matcher.lightglue.filter_threshold=1.5"], "filter_threshold must be in"),

@@ -55,8 +55,8 @@ class _Choice:
         """What changes the results: the name and the chosen component's options (not where
         or on how many threads it runs)."""
         selected = options_as_dict(self.selected)
-        selected.pop("device", None)
-        selected.pop("threads", None)
+        for where in ("device", "threads", "runs_at_once"):
+            selected.pop(where, None)
         return {"name": self.name, self.name: selected}
 
 
@@ -122,6 +122,19 @@ class FeatureOptions:
         return device == "cuda" or (not resizes and cuda_torch(device) is not None)
 
 
+def one_at_a_time(options: FeatureOptions) -> FeatureOptions:
+    """``options`` with the ONNX Runtime networks on every core for each image and pair, one
+    at a time (``runs_at_once`` 1): for a localizer, which matches a query's pairs one after
+    another and stops early, its latency before throughput."""
+    chosen = {}
+    for part in (options.extractor, options.matcher):
+        if hasattr(part.selected, "runs_at_once"):
+            part = replace(part, **{part.name: replace(part.selected, runs_at_once=1)})
+        chosen[type(part).__name__] = part
+    return replace(options, extractor=chosen["ExtractorOptions"],
+                   matcher=chosen["MatcherOptions"])
+
+
 def make_extractor(options: FeatureOptions, device: str = "auto"):
     extractor = options.extractor
     if extractor.name == "sift":
@@ -172,27 +185,30 @@ def _torch_matcher(options, name: str):
 
 class LazyMatcher:
     """Builds the matcher on first use (loading LightGlue costs seconds; many runs reuse every
-    match from a cache and never need it). Safe to call from several threads: a matcher that
-    already uses every core per call (ONNX Runtime's thread pool) runs one pair at a time
-    while the verification of other pairs goes on; k-NN and the torch backend run in
+    match from a cache and never need it). Safe to call from several threads: an ONNX
+    Runtime matcher, whose runs share the cores, matches its ``runs_at_once`` pairs at a
+    time while the verification of other pairs goes on; k-NN and the torch backend run in
     parallel (measured on 2 cores: LighterGlue 0.415 s per pair alone, 0.462 s two at once)."""
 
     def __init__(self, options: FeatureOptions, device: str = "auto") -> None:
         self.options, self.device, self._matcher = options, device, None
-        self._lock, self._run_lock = threading.Lock(), threading.Lock()
+        self._lock, self._runs = threading.Lock(), None
 
     def _built(self):
         if self._matcher is None:
             with self._lock:
                 if self._matcher is None:
-                    self._matcher = make_matcher(self.options, self.device)
+                    matcher = make_matcher(self.options, self.device)
+                    self._runs = threading.BoundedSemaphore(
+                        getattr(matcher, "runs_at_once", 1))
+                    self._matcher = matcher
         return self._matcher
 
     def match(self, features0, features1):
         matcher = self._built()
         if getattr(matcher, "parallel_pairs", False):
             return matcher.match(features0, features1)
-        with self._run_lock:
+        with self._runs:
             return matcher.match(features0, features1)
 
     @property

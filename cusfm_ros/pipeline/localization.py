@@ -13,7 +13,8 @@ import numpy as np
 
 from cusfm_ros.core.localization.localizer import Localizer, LocalizerOptions
 from cusfm_ros.io.map_store import read_map_store
-from cusfm_ros.pipeline.components import FeatureOptions, make_extractor, make_matcher
+from cusfm_ros.pipeline.components import (FeatureOptions, make_extractor, make_matcher,
+                                           one_at_a_time)
 from cusfm_ros.pipeline.config import options_from_dict
 
 logger = logging.getLogger(__name__)
@@ -32,7 +33,7 @@ def load_localizer(map_dir: str | os.PathLike, options: LocalizerOptions = Local
     started = time.perf_counter()
     prior_map = read_map_store(map_dir)
     loaded = time.perf_counter()
-    features = map_feature_options(prior_map, model_dir, backend)
+    features = one_at_a_time(map_feature_options(prior_map, model_dir, backend))
     localizer = Localizer(prior_map, make_extractor(features, device),
                           make_matcher(features, device), options)
     localizer.source = str(map_dir)

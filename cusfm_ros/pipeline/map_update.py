@@ -49,7 +49,7 @@ from cusfm_ros.io.results_bag import write_results_bag
 from cusfm_ros.report.page import write_page
 from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.io.tum import format_tum, read_tum
-from cusfm_ros.pipeline.components import make_matcher
+from cusfm_ros.pipeline.components import make_matcher, one_at_a_time
 from cusfm_ros.pipeline.localization import map_feature_options
 from cusfm_ros.pipeline.mapper import Mapper
 from cusfm_ros.pipeline.progress import Progress
@@ -159,7 +159,8 @@ def localize_samples(map_dir: str, session_dir: str, sample_ids: list[str], opti
     session = RunDir(Path(session_dir))
     keyframes = load_keyframes(session)
     samples = keyframes.samples()
-    localizer = Localizer(prior, None, make_matcher(features_options, options.device),
+    localizer = Localizer(prior, None, make_matcher(one_at_a_time(features_options),
+                                                    options.device),
                           LocalizerOptions(seed=options.seed))
     with open_features(session, options) as store:
         return {s: localizer.localize(_queries(keyframes, samples, s, store), keep_matches=True)
@@ -200,7 +201,7 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
     new_start = new_input
     if session.pose_graph_poses.is_file():
         new_start = read_tum(session.pose_graph_poses).world_from_body
-    matcher = make_matcher(features_options, options.device)
+    matcher = make_matcher(one_at_a_time(features_options), options.device)
     localizer = Localizer(prior, None, matcher, LocalizerOptions(seed=options.seed))
     samples = new_keyframes.samples()
     localized, results = {}, {}

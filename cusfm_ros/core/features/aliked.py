@@ -9,7 +9,9 @@ import cv2
 import numpy as np
 
 from cusfm_ros.core.features.detection import detect_keypoints
-from cusfm_ros.core.features.onnx_session import make_session
+from cusfm_ros.core.features.onnx_session import (available_memory_bytes, make_session,
+                                                  map_at_once, on_cpu, runs_and_threads,
+                                                  runs_in_memory)
 from cusfm_ros.core.features.types import Features, FeatureError, prepare_image
 from cusfm_ros.errors import ConfigError
 
@@ -29,6 +31,11 @@ class AlikedOptions:
     original image's pixels."""
     device: str = "auto"
     threads: int = 0
+    """CPU cores of the ONNX Runtime path (0: every core this process may use)."""
+    runs_at_once: int = 0
+    """The ONNX Runtime path on the CPU: images extracted at once, each on ``threads`` / this
+    many intra-op threads (the same features); 0: one per ``CPU_THREADS_PER_RUN`` cores. Each
+    run holds ~1.1 GB at 1241x376 (scales with the pixels)."""
     batch_size: int = 4
     """Images per call of the network on a GPU (torch backend; one at a time on a CPU).
     About 0.6 GB of GPU memory per 1241x376 image."""
@@ -46,10 +53,11 @@ class AlikedOptions:
     def __post_init__(self) -> None:
         if self.batch_size < 1:
             raise ConfigError(f"ALIKED: batch_size must be >= 1, got {self.batch_size}")
-        if self.max_keypoints < 0 or self.resize_max_px < 0 or self.threads < 0:
-            raise ConfigError(f"ALIKED: max_keypoints, resize_max_px and threads must be >= 0 "
-                              f"(0: no cap / no resize / all cores), got {self.max_keypoints}, "
-                              f"{self.resize_max_px} and {self.threads}")
+        if min(self.max_keypoints, self.resize_max_px, self.threads, self.runs_at_once) < 0:
+            raise ConfigError(f"ALIKED: max_keypoints, resize_max_px, threads and runs_at_once "
+                              f"must be >= 0 (0: no cap / no resize / all cores / from the "
+                              f"cores), got {self.max_keypoints}, {self.resize_max_px}, "
+                              f"{self.threads} and {self.runs_at_once}")
         if self.detection_threshold <= 0 and self.max_keypoints <= 0:
             raise ConfigError("ALIKED: with detection_threshold <= 0, max_keypoints must be > 0")
         if self.nms_radius < 1:
@@ -59,17 +67,43 @@ class AlikedOptions:
 class AlikedExtractor:
     name = "aliked"
     descriptor_dim = 128
+    CPU_THREADS_PER_RUN = 1
+    """``runs_at_once`` 0 on the CPU: one image at once per this many cores (measured:
+    ``runs_and_threads``)."""
+    CPU_BYTES_PER_PIXEL = 3200
+    """What one run holds on the CPU per pixel of the network's input: 1.46 GB more per
+    1241x376 image at once (16 against 1 at once, 16-core machine); images run at once are
+    kept within half the memory available when the extractor is made."""
 
     def __init__(self, model_dir: str | Path, options: AlikedOptions = AlikedOptions()) -> None:
         model_dir = Path(model_dir)
         self.options = options
-        self.dense = make_session(model_dir / "aliked_dense.onnx", options.device,
-                                  options.threads)
-        self.head = make_session(model_dir / "aliked_sddh.onnx", options.device,
-                                 options.threads)
+        # batch_size: the images extract_batch runs at once (the features stage hands it
+        # that many)
+        self.batch_size, threads = 1, options.threads
+        if on_cpu(options.device):
+            self.batch_size, threads = runs_and_threads(
+                options.threads, options.runs_at_once, self.CPU_THREADS_PER_RUN)
+        self.dense = make_session(model_dir / "aliked_dense.onnx", options.device, threads)
+        self.head = make_session(model_dir / "aliked_sddh.onnx", options.device, threads)
+        self._available_bytes = available_memory_bytes() if self.batch_size > 1 else None
 
     def config(self) -> dict:
         return {"name": self.name, **self.options.__dict__}
+
+    def extract_batch(self, images: list[np.ndarray]) -> list[Features]:
+        """``extract`` of each image, up to ``batch_size`` at once (fewer where their
+        activations would not fit: ``CPU_BYTES_PER_PIXEL``)."""
+        pixels = max((self._network_pixels(np.asarray(i).shape[:2]) for i in images),
+                     default=0)
+        runs = runs_in_memory(self.batch_size, pixels * self.CPU_BYTES_PER_PIXEL,
+                              self._available_bytes)
+        return map_at_once(self.extract, images, runs)
+
+    def _network_pixels(self, shape: tuple[int, int]) -> float:
+        longest = self.options.resize_max_px
+        scale = min(1.0, longest / max(shape)) if longest else 1.0
+        return shape[0] * shape[1] * scale * scale
 
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
         """Keypoints in pixels of ``image``; pixels where ``mask`` is 0 give none."""

@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 
 from cusfm_ros.core.features.detection import bilinear
-from cusfm_ros.core.features.onnx_session import make_session
+from cusfm_ros.core.features.onnx_session import (make_session, map_at_once, on_cpu,
+                                                  runs_and_threads)
 from cusfm_ros.core.features.types import Features, FeatureError, prepare_image
 from cusfm_ros.errors import ConfigError
 
@@ -38,11 +39,16 @@ class XFeatOptions:
     """Minimum keypoint heatmap value at an NMS peak."""
     device: str = "auto"
     threads: int = 0
+    """CPU cores of the ONNX Runtime path (0: every core this process may use)."""
+    runs_at_once: int = 0
+    """The ONNX Runtime path on the CPU: images extracted at once, each on ``threads`` / this
+    many intra-op threads (the same features); 0: one per ``CPU_THREADS_PER_RUN`` cores."""
 
     def __post_init__(self) -> None:
-        if self.max_keypoints < 1 or self.threads < 0:
-            raise ConfigError(f"XFeat: max_keypoints must be >= 1 and threads >= 0, got "
-                              f"{self.max_keypoints} and {self.threads}")
+        if self.max_keypoints < 1 or self.threads < 0 or self.runs_at_once < 0:
+            raise ConfigError(f"XFeat: max_keypoints must be >= 1, threads and runs_at_once "
+                              f">= 0, got {self.max_keypoints}, {self.threads} and "
+                              f"{self.runs_at_once}")
         if not 0 <= self.detection_threshold < 1:
             raise ConfigError(f"XFeat: detection_threshold must be in [0, 1), got "
                               f"{self.detection_threshold}")
@@ -152,11 +158,21 @@ def detect_and_describe(heatmap: np.ndarray, reliability: np.ndarray, features: 
 class XFeatExtractor:
     name = "xfeat"
     descriptor_dim = DESCRIPTOR_DIM
+    CPU_THREADS_PER_RUN = 1
+    """``runs_at_once`` 0 on the CPU: one image at once per this many cores."""
 
     def __init__(self, model_dir: str | Path, options: XFeatOptions = XFeatOptions()) -> None:
         self.options = options
-        self.session = make_session(Path(model_dir) / "xfeat.onnx", options.device,
-                                    options.threads)
+        # batch_size: the images extract_batch runs at once
+        self.batch_size, threads = 1, options.threads
+        if on_cpu(options.device):
+            self.batch_size, threads = runs_and_threads(
+                options.threads, options.runs_at_once, self.CPU_THREADS_PER_RUN)
+        self.session = make_session(Path(model_dir) / "xfeat.onnx", options.device, threads)
+
+    def extract_batch(self, images: list[np.ndarray]) -> list[Features]:
+        """``extract`` of each image, ``batch_size`` at once."""
+        return map_at_once(self.extract, images, self.batch_size)
 
     def config(self) -> dict:
         return {"name": self.name, **self.options.__dict__}

@@ -1,0 +1,159 @@
+"""The ONNX Runtime networks on the CPU run several images or pairs at once, each on a share of
+the cores (``runs_at_once``): the same features and matches as one at a time on every core,
+within the memory available, and one at a time again for a localizer."""
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+import skimage.data
+
+import cusfm_ros.core.features.aliked as aliked_module
+from cusfm_ros.core.features import onnx_session
+from cusfm_ros.core.features.aliked import AlikedExtractor, AlikedOptions
+from cusfm_ros.core.features.lightglue import LightGlueMatcher, LightGlueOptions
+from cusfm_ros.core.features.onnx_session import runs_and_threads, runs_in_memory
+from cusfm_ros.core.features.xfeat import XFeatExtractor, XFeatOptions
+from cusfm_ros.errors import ConfigError
+from cusfm_ros.pipeline import components
+from cusfm_ros.models.store import ensure_models
+from cusfm_ros.pipeline.components import (ExtractorOptions, FeatureOptions, LazyMatcher,
+                                           MatcherOptions, one_at_a_time)
+
+
+@pytest.fixture(scope="module")
+def model_dir():
+    return ensure_models()
+
+
+@pytest.fixture(scope="module")
+def images():
+    """Four different real images of one size."""
+    left, right = skimage.data.stereo_motorcycle()[:2]
+    return [left[:320, :480].copy(), right[:320, :480].copy(),
+            left[200:520, 300:780].copy(), right[200:520, 300:780].copy()]
+
+
+def test_cores_are_shared_between_runs(monkeypatch):
+    monkeypatch.setattr(onnx_session, "usable_cores", lambda: 16)
+    assert runs_and_threads(0, 0, 1) == (16, 1)  # every core, one run each
+    assert runs_and_threads(0, 0, 4) == (4, 4)
+    assert runs_and_threads(8, 0, 1) == (8, 1)  # threads: the cores it may use
+    assert runs_and_threads(6, 4, 1) == (4, 1)  # runs asked for; the rest idles
+    assert runs_and_threads(2, 5, 1) == (2, 1)  # never more runs than cores
+    assert runs_and_threads(0, 1, 1) == (1, 16)  # one at a time on every core
+
+
+def test_runs_are_bounded_by_the_memory_available():
+    gigabyte = 1 << 30
+    assert runs_in_memory(16, 1.5 * gigabyte, 64 * gigabyte) == 16
+    assert runs_in_memory(16, 1.5 * gigabyte, 16 * gigabyte) == 5  # half of 16 GB / 1.5
+    assert runs_in_memory(16, 1.5 * gigabyte, gigabyte) == 1  # never none
+    assert runs_in_memory(4, 1.5 * gigabyte, None) == 4  # unknown memory: no bound
+    assert onnx_session.available_memory_bytes() is None or \
+        onnx_session.available_memory_bytes() > 0
+
+
+def test_the_options_check_runs_at_once():
+    for make in (lambda: AlikedOptions(runs_at_once=-1), lambda: XFeatOptions(runs_at_once=-1),
+                 lambda: LightGlueOptions(runs_at_once=-1)):
+        with pytest.raises(ConfigError, match="runs_at_once"):
+            make()
+
+
+def test_runs_at_once_leaves_the_fingerprints_as_they_were():
+    """It changes no result: run directories stay up to date whatever it is."""
+    assert (ExtractorOptions(aliked=AlikedOptions(runs_at_once=3)).fingerprint()
+            == ExtractorOptions().fingerprint())
+    assert (MatcherOptions(lightglue=LightGlueOptions(runs_at_once=3)).fingerprint()
+            == MatcherOptions().fingerprint())
+
+
+def _same_features(a, b):
+    np.testing.assert_array_equal(a.keypoints_px, b.keypoints_px)
+    np.testing.assert_array_equal(a.scores, b.scores)
+    np.testing.assert_array_equal(a.descriptors, b.descriptors)
+
+
+def test_aliked_images_at_once_give_the_same_features(model_dir, images, monkeypatch):
+    one = AlikedExtractor(model_dir, AlikedOptions(max_keypoints=512, threads=2,
+                                                   runs_at_once=1))
+    two = AlikedExtractor(model_dir, AlikedOptions(max_keypoints=512, threads=2,
+                                                   runs_at_once=2))
+    assert (one.batch_size, two.batch_size) == (1, 2)
+    alone = [one.extract(image) for image in images]
+    runs = []
+    real = aliked_module.map_at_once
+    monkeypatch.setattr(aliked_module, "map_at_once",
+                        lambda function, items, n: runs.append(n) or real(function, items, n))
+    for a, b in zip(alone, two.extract_batch(images)):
+        _same_features(a, b)
+    two._available_bytes = 480 * 320 * AlikedExtractor.CPU_BYTES_PER_PIXEL  # room for 0.5
+    for a, b in zip(alone, two.extract_batch(images)):
+        _same_features(a, b)
+    assert runs == [2, 1]
+
+
+def test_xfeat_images_at_once_give_the_same_features(model_dir, images):
+    one = XFeatExtractor(model_dir, XFeatOptions(max_keypoints=512, threads=2, runs_at_once=1))
+    two = XFeatExtractor(model_dir, XFeatOptions(max_keypoints=512, threads=2, runs_at_once=2))
+    for a, b in zip([one.extract(image) for image in images], two.extract_batch(images)):
+        _same_features(a, b)
+
+
+def test_lightglue_pairs_at_once_give_the_same_matches(model_dir, images):
+    extractor = AlikedExtractor(model_dir, AlikedOptions(max_keypoints=512))
+    features = [extractor.extract(image) for image in images]
+    pairs = [(features[i], features[j]) for i in range(4) for j in range(4) if i < j]
+    one = LightGlueMatcher(model_dir, LightGlueOptions(threads=2, runs_at_once=1))
+    alone = [one.match(*pair) for pair in pairs]
+    options = FeatureOptions(matcher=MatcherOptions(
+        lightglue=LightGlueOptions(threads=2, runs_at_once=2)), model_dir=str(model_dir))
+    lazy = LazyMatcher(options, "cpu")
+    assert lazy._built().runs_at_once == 2
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda pair: lazy.match(*pair), pairs))
+    assert sum(len(m) for m in alone) > 100
+    for a, b in zip(alone, together):
+        np.testing.assert_array_equal(a.indices, b.indices)
+        np.testing.assert_array_equal(a.confidences, b.confidences)
+
+
+class _CountingMatcher:
+    """Counts the calls that run at once."""
+    runs_at_once = 2
+
+    def __init__(self):
+        self.now = self.most = 0
+        self.lock = threading.Lock()
+
+    def match(self, features0, features1):
+        with self.lock:
+            self.now += 1
+            self.most = max(self.most, self.now)
+        time.sleep(0.02)
+        with self.lock:
+            self.now -= 1
+        return None
+
+
+def test_the_stages_call_an_onnx_matcher_runs_at_once_at_a_time(monkeypatch):
+    counting = _CountingMatcher()
+    monkeypatch.setattr(components, "make_matcher", lambda options, device: counting)
+    lazy = LazyMatcher(FeatureOptions(), "cpu")
+    with ThreadPoolExecutor(6) as pool:
+        list(pool.map(lambda _: lazy.match(None, None), range(24)))
+    assert counting.most == 2
+
+
+def test_a_localizer_runs_one_image_and_pair_at_a_time_on_every_core():
+    options = one_at_a_time(FeatureOptions())
+    assert options.extractor.aliked.runs_at_once == 1
+    assert options.matcher.lightglue.runs_at_once == 1
+    assert options.extractor.xfeat.runs_at_once == 0  # not the chosen one
+    sift = one_at_a_time(FeatureOptions(extractor=ExtractorOptions(name="sift"),
+                                        matcher=MatcherOptions(name="knn")))
+    assert sift == FeatureOptions(extractor=ExtractorOptions(name="sift"),
+                                  matcher=MatcherOptions(name="knn"))
