@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 import skimage.data
 
-import cusfm_ros.core.features.aliked as aliked_module
 from cusfm_ros.core.features import onnx_session
 from cusfm_ros.core.features.aliked import AlikedExtractor, AlikedOptions
 from cusfm_ros.core.features.lightglue import LightGlueMatcher, LightGlueOptions
-from cusfm_ros.core.features.onnx_session import runs_and_threads, runs_in_memory
+from cusfm_ros.core.features.onnx_session import SideBySide, runs_and_threads, runs_in_memory
 from cusfm_ros.core.features.xfeat import XFeatExtractor, XFeatOptions
 from cusfm_ros.errors import ConfigError
 from cusfm_ros.pipeline import components
@@ -44,6 +43,7 @@ def test_cores_are_shared_between_runs(monkeypatch):
     assert runs_and_threads(6, 4, 1) == (4, 1)  # runs asked for; the rest idles
     assert runs_and_threads(2, 5, 1) == (2, 1)  # never more runs than cores
     assert runs_and_threads(0, 1, 1) == (1, 16)  # one at a time on every core
+    assert runs_and_threads(0, 0, 0) == (1, 16)  # the component's default: the same
 
 
 def test_runs_are_bounded_by_the_memory_available():
@@ -54,6 +54,30 @@ def test_runs_are_bounded_by_the_memory_available():
     assert runs_in_memory(4, 1.5 * gigabyte, None) == 4  # unknown memory: no bound
     assert onnx_session.available_memory_bytes() is None or \
         onnx_session.available_memory_bytes() > 0
+
+
+def test_side_by_side_keeps_its_threads_and_the_order():
+    side_by_side = SideBySide(3)
+    now, most, seen = [0], [0], set()
+    lock = threading.Lock()
+
+    def work(item):
+        with lock:
+            now[0] += 1
+            most[0] = max(most[0], now[0])
+            seen.add(threading.get_ident())
+        time.sleep(0.01)
+        with lock:
+            now[0] -= 1
+        return item * 2
+
+    assert side_by_side.map(work, list(range(10))) == [2 * i for i in range(10)]
+    assert most[0] == 3
+    first = set(seen)
+    most[0] = 0
+    assert side_by_side.map(work, list(range(7)), runs=2) == [2 * i for i in range(7)]
+    assert most[0] == 2 and seen == first  # the same threads, fewer at once
+    assert SideBySide(1).map(work, [1, 2]) == [2, 4]
 
 
 def test_the_options_check_runs_at_once():
@@ -83,10 +107,11 @@ def test_aliked_images_at_once_give_the_same_features(model_dir, images, monkeyp
     two = AlikedExtractor(model_dir, AlikedOptions(max_keypoints=512, threads=2,
                                                    runs_at_once=2))
     assert (one.batch_size, two.batch_size) == (1, 2)
+    assert AlikedExtractor(model_dir, AlikedOptions(threads=2)).batch_size == 1  # default
     alone = [one.extract(image) for image in images]
     runs = []
-    real = aliked_module.map_at_once
-    monkeypatch.setattr(aliked_module, "map_at_once",
+    real = two._side_by_side.map
+    monkeypatch.setattr(two._side_by_side, "map",
                         lambda function, items, n: runs.append(n) or real(function, items, n))
     for a, b in zip(alone, two.extract_batch(images)):
         _same_features(a, b)
@@ -98,7 +123,8 @@ def test_aliked_images_at_once_give_the_same_features(model_dir, images, monkeyp
 
 def test_xfeat_images_at_once_give_the_same_features(model_dir, images):
     one = XFeatExtractor(model_dir, XFeatOptions(max_keypoints=512, threads=2, runs_at_once=1))
-    two = XFeatExtractor(model_dir, XFeatOptions(max_keypoints=512, threads=2, runs_at_once=2))
+    two = XFeatExtractor(model_dir, XFeatOptions(max_keypoints=512, threads=2))  # default
+    assert two.batch_size == 2
     for a, b in zip([one.extract(image) for image in images], two.extract_batch(images)):
         _same_features(a, b)
 
@@ -108,6 +134,7 @@ def test_lightglue_pairs_at_once_give_the_same_matches(model_dir, images):
     features = [extractor.extract(image) for image in images]
     pairs = [(features[i], features[j]) for i in range(4) for j in range(4) if i < j]
     one = LightGlueMatcher(model_dir, LightGlueOptions(threads=2, runs_at_once=1))
+    assert LightGlueMatcher(model_dir, LightGlueOptions(threads=2)).runs_at_once == 2
     alone = [one.match(*pair) for pair in pairs]
     options = FeatureOptions(matcher=MatcherOptions(
         lightglue=LightGlueOptions(threads=2, runs_at_once=2)), model_dir=str(model_dir))

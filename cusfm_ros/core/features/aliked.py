@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 
 from cusfm_ros.core.features.detection import detect_keypoints
-from cusfm_ros.core.features.onnx_session import (available_memory_bytes, make_session,
-                                                  map_at_once, on_cpu, runs_and_threads,
+from cusfm_ros.core.features.onnx_session import (SideBySide, available_memory_bytes,
+                                                  make_session, on_cpu, runs_and_threads,
                                                   runs_in_memory)
 from cusfm_ros.core.features.types import Features, FeatureError, prepare_image
 from cusfm_ros.errors import ConfigError
@@ -34,8 +34,12 @@ class AlikedOptions:
     """CPU cores of the ONNX Runtime path (0: every core this process may use)."""
     runs_at_once: int = 0
     """The ONNX Runtime path on the CPU: images extracted at once, each on ``threads`` / this
-    many intra-op threads (the same features); 0: one per ``CPU_THREADS_PER_RUN`` cores. Each
-    run holds ~1.1 GB at 1241x376 (scales with the pixels)."""
+    many intra-op threads (the same features), at most as many as half the memory available
+    holds (~1.5 GB an image at 1241x376); 0: one at a time on every core. Side by side paid
+    nothing in the features stage: 16 at once on the 16-core machine 134.8 s for 200 street
+    images against 136.7 one at a time, in 26 GB; 2 at once on 2 cores ~0.5 s an image
+    either way. (A standalone loop of 16 at once had been 9.6x faster there: not
+    understood, docs/benchmarks.md.)"""
     batch_size: int = 4
     """Images per call of the network on a GPU (torch backend; one at a time on a CPU).
     About 0.6 GB of GPU memory per 1241x376 image."""
@@ -67,9 +71,8 @@ class AlikedOptions:
 class AlikedExtractor:
     name = "aliked"
     descriptor_dim = 128
-    CPU_THREADS_PER_RUN = 1
-    """``runs_at_once`` 0 on the CPU: one image at once per this many cores (measured:
-    ``runs_and_threads``)."""
+    CPU_THREADS_PER_RUN = 0
+    """``runs_at_once`` 0 on the CPU: one image at a time on every core (``AlikedOptions``)."""
     CPU_BYTES_PER_PIXEL = 3200
     """What one run holds on the CPU per pixel of the network's input: 1.46 GB more per
     1241x376 image at once (16 against 1 at once, 16-core machine); images run at once are
@@ -87,6 +90,7 @@ class AlikedExtractor:
         self.dense = make_session(model_dir / "aliked_dense.onnx", options.device, threads)
         self.head = make_session(model_dir / "aliked_sddh.onnx", options.device, threads)
         self._available_bytes = available_memory_bytes() if self.batch_size > 1 else None
+        self._side_by_side = SideBySide(self.batch_size)
 
     def config(self) -> dict:
         return {"name": self.name, **self.options.__dict__}
@@ -98,7 +102,7 @@ class AlikedExtractor:
                      default=0)
         runs = runs_in_memory(self.batch_size, pixels * self.CPU_BYTES_PER_PIXEL,
                               self._available_bytes)
-        return map_at_once(self.extract, images, runs)
+        return self._side_by_side.map(self.extract, images, runs)
 
     def _network_pixels(self, shape: tuple[int, int]) -> float:
         longest = self.options.resize_max_px

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
@@ -60,13 +61,13 @@ def runs_and_threads(threads: int, runs_at_once: int, threads_per_run: int = 1
                      ) -> tuple[int, int]:
     """How a network's CPU work shares ``threads`` cores (0: every usable one): (runs at
     once, intra-op threads of each). ``runs_at_once`` 0 takes one run per
-    ``threads_per_run`` cores. ONNX Runtime's intra-op threads did not pay on the 16-core
-    GPU machine: one ALIKED image took 1.06 s on 16 threads and LightGlue's pair 1.04 on 16
-    or 4, while 16 images side by side on one thread each took 0.110 s an image and 16
-    pairs 0.161 s a pair (2 cores: 2 images on one thread each 0.42-0.50 s an image, one on
-    2 threads 0.46-0.88; docs/benchmarks.md)."""
+    ``threads_per_run`` cores (0: one run on every core). ONNX Runtime's intra-op threads
+    did not pay on the 16-core GPU machine: LightGlue's pair took 1.04 s on 16 threads and
+    on 4, while 16 pairs side by side on one thread each took 0.161 s a pair (the loops
+    stage of street 100: 100.7 -> 49.4 s); on 2 cores the demo's matching 12.4 -> 9.0 s
+    (docs/benchmarks.md)."""
     cores = threads or usable_cores()
-    runs = runs_at_once or max(1, cores // max(1, threads_per_run))
+    runs = runs_at_once or (cores // threads_per_run if threads_per_run > 0 else 1)
     runs = max(1, min(runs, cores))
     return runs, max(1, cores // runs)
 
@@ -93,14 +94,32 @@ def runs_in_memory(runs: int, bytes_per_run: float, available: int | None,
     return max(1, min(runs, int(available * share // bytes_per_run)))
 
 
-def map_at_once(function: Callable[[Item], Result], items: Sequence[Item], runs: int
-                ) -> list[Result]:
-    """``function`` of each item, in order, ``runs`` at once on threads (a session lets go of
-    the GIL while it runs)."""
-    if runs <= 1 or len(items) <= 1:
-        return [function(item) for item in items]
-    with ThreadPoolExecutor(min(runs, len(items))) as pool:
-        return list(pool.map(function, items))
+class SideBySide:
+    """Threads that run a network on several inputs at once (a session lets go of the GIL
+    while it runs), started at the first use and kept for the owner's life. On the 16-core
+    machine LightGlue's pairs side by side on the loops' long-lived threads halved the stage
+    (100.7 -> 49.4 s, street 100) while ALIKED's images on threads started afresh for every
+    batch gained nothing (136.7 -> 134.8 s) where a standalone run on kept threads had been
+    9.6x faster: the cause is not measured, the threads are kept in case it is their start
+    (ORT's per-thread buffers, the allocator's per-thread arenas)."""
+
+    def __init__(self, runs: int) -> None:
+        self.runs = max(1, runs)
+        self._pool: ThreadPoolExecutor | None = None
+        self._lock = threading.Lock()
+
+    def map(self, function: Callable[[Item], Result], items: Sequence[Item],
+            runs: int | None = None) -> list[Result]:
+        """``function`` of each item, in order, at most ``runs`` (default all of them) at
+        once."""
+        runs = min(self.runs, runs or self.runs, len(items))
+        if runs <= 1:
+            return [function(item) for item in items]
+        with self._lock:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(self.runs, thread_name_prefix="cusfm-onnx")
+        return [result for start in range(0, len(items), runs)
+                for result in self._pool.map(function, items[start:start + runs])]
 
 
 def make_session(path, device: str = "auto", threads: int = 0):
