@@ -184,3 +184,25 @@ def test_a_localizer_runs_one_image_and_pair_at_a_time_on_every_core():
                                         matcher=MatcherOptions(name="knn")))
     assert sift == FeatureOptions(extractor=ExtractorOptions(name="sift"),
                                   matcher=MatcherOptions(name="knn"))
+
+
+def test_the_bench_finds_the_same_results_for_every_variant(images, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import cv2
+
+    for number, image in enumerate(images[:3]):
+        cv2.imwrite(str(tmp_path / f"{number}.png"), image)
+    bench = Path(__file__).resolve().parents[1] / "bench" / "onnx_runs.py"
+    done = subprocess.run([sys.executable, str(bench), str(tmp_path), "--networks", "aliked",
+                           "lightglue", "--variants", "1x2", "2x1", "--max-keypoints", "256"],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    rows = [line.split("|")[1:-1] for line in done.stdout.splitlines()[2:]]
+    assert [(r[0].strip(), r[1].strip(), r[2].strip()) for r in rows] == [
+        ("aliked", "1", "2"), ("aliked", "2", "1"), ("lightglue", "1", "2"),
+        ("lightglue", "2", "1")]
+    assert all(float(r[3]) > 0 for r in rows)
+    assert rows[0][5] == rows[1][5] and rows[2][5] == rows[3][5]  # the same results
