@@ -187,8 +187,10 @@ class LazyMatcher:
     """Builds the matcher on first use (loading LightGlue costs seconds; many runs reuse every
     match from a cache and never need it). Safe to call from several threads: an ONNX
     Runtime matcher, whose runs share the cores, matches its ``runs_at_once`` pairs at a
-    time while the verification of other pairs goes on; k-NN and the torch backend run in
-    parallel (measured on 2 cores: LighterGlue 0.415 s per pair alone, 0.462 s two at once)."""
+    time while the verification of other pairs goes on (2 cores, street pairs: LighterGlue
+    0.312 s a pair two at once on a thread each, 0.369-0.415 one at a time on both; before,
+    two at once on both threads each took 0.462); k-NN and the torch backend run in
+    parallel."""
 
     def __init__(self, options: FeatureOptions, device: str = "auto") -> None:
         self.options, self.device, self._matcher = options, device, None

@@ -64,8 +64,8 @@ def runs_and_threads(threads: int, runs_at_once: int, threads_per_run: int = 1
     ``threads_per_run`` cores (0: one run on every core). ONNX Runtime's intra-op threads
     did not pay on the 16-core GPU machine: LightGlue's pair took 1.04 s on 16 threads and
     on 4, while 16 pairs side by side on one thread each took 0.161 s a pair (the loops
-    stage of street 100: 100.7 -> 49.4 s); on 2 cores the demo's matching 12.4 -> 9.0 s
-    (docs/benchmarks.md)."""
+    stage of street 100: 100.7 -> 49.4 s); on 2 cores the demo's matching 12.4-12.9 ->
+    8.6-9.6 s (docs/benchmarks.md)."""
     cores = threads or usable_cores()
     runs = runs_at_once or (cores // threads_per_run if threads_per_run > 0 else 1)
     runs = max(1, min(runs, cores))
