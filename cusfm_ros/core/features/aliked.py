@@ -37,8 +37,8 @@ class AlikedOptions:
     many intra-op threads (the same features), at most as many as half the memory available
     holds (~1.5 GB an image at 1241x376); 0: one at a time on every core. Side by side paid
     nothing in the features stage: 16 at once on the 16-core machine 134.8 s for 200 street
-    images against 136.7 one at a time, in 26 GB; 2 at once on 2 cores ~0.5 s an image
-    either way. (A standalone loop of 16 at once had been 9.6x faster there: not
+    images against 136.7 one at a time, in 26 GB; 2 at once on 2 cores 0.45-0.53 s an image
+    against 0.48-0.55. (A standalone loop of 16 at once had been 9.6x faster there: not
     understood, docs/benchmarks.md.)"""
     batch_size: int = 4
     """Images per call of the network on a GPU (torch backend; one at a time on a CPU).
