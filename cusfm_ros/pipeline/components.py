@@ -126,13 +126,12 @@ def one_at_a_time(options: FeatureOptions) -> FeatureOptions:
     """``options`` with the ONNX Runtime networks on every core for each image and pair, one
     at a time (``runs_at_once`` 1): for a localizer, which matches a query's pairs one after
     another and stops early, its latency before throughput."""
-    chosen = {}
-    for part in (options.extractor, options.matcher):
-        if hasattr(part.selected, "runs_at_once"):
-            part = replace(part, **{part.name: replace(part.selected, runs_at_once=1)})
-        chosen[type(part).__name__] = part
-    return replace(options, extractor=chosen["ExtractorOptions"],
-                   matcher=chosen["MatcherOptions"])
+    def one(part):
+        if not hasattr(part.selected, "runs_at_once"):
+            return part
+        return replace(part, **{part.name: replace(part.selected, runs_at_once=1)})
+
+    return replace(options, extractor=one(options.extractor), matcher=one(options.matcher))
 
 
 def make_extractor(options: FeatureOptions, device: str = "auto"):

@@ -26,6 +26,7 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from itertools import chain, islice
 from typing import TypeVar
 
+from cusfm_ros.core.cores import usable_cores
 from cusfm_ros.errors import ConfigError
 
 Item = TypeVar("Item")
@@ -36,12 +37,7 @@ def thread_count(requested: int = 0) -> int:
     """``requested`` threads, or every core this process may use when 0."""
     if requested < 0:
         raise ConfigError(f"cpu_threads must be >= 0 (0: every core), got {requested}")
-    if requested:
-        return requested
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
+    return requested or usable_cores()
 
 
 def _block_signals() -> None:

@@ -10,8 +10,8 @@ import numpy as np
 
 from cusfm_ros.core.features.detection import detect_keypoints
 from cusfm_ros.core.features.onnx_session import (SideBySide, available_memory_bytes,
-                                                  make_session, on_cpu, runs_and_threads,
-                                                  runs_in_memory)
+                                                  make_session, runs_in_memory,
+                                                  session_runs)
 from cusfm_ros.core.features.types import Features, FeatureError, prepare_image
 from cusfm_ros.errors import ConfigError
 
@@ -83,10 +83,7 @@ class AlikedExtractor:
         self.options = options
         # batch_size: the images extract_batch runs at once (the features stage hands it
         # that many)
-        self.batch_size, threads = 1, options.threads
-        if on_cpu(options.device):
-            self.batch_size, threads = runs_and_threads(
-                options.threads, options.runs_at_once, self.CPU_THREADS_PER_RUN)
+        self.batch_size, threads = session_runs(options, self.CPU_THREADS_PER_RUN)
         self.dense = make_session(model_dir / "aliked_dense.onnx", options.device, threads)
         self.head = make_session(model_dir / "aliked_sddh.onnx", options.device, threads)
         self._available_bytes = available_memory_bytes() if self.batch_size > 1 else None

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from cusfm_ros.core.features.adaptive_lightglue import run_adaptive
-from cusfm_ros.core.features.onnx_session import make_session, on_cpu, runs_and_threads
+from cusfm_ros.core.features.onnx_session import make_session, session_runs
 from cusfm_ros.core.features.types import FeatureError, Features, Matches
 from cusfm_ros.errors import ConfigError
 
@@ -183,10 +183,7 @@ class LightGlueMatcher:
                  ) -> None:
         self.options = options
         # runs_at_once: the pairs that may be matched at once (from as many threads)
-        self.runs_at_once, threads = 1, options.threads
-        if on_cpu(options.device):
-            self.runs_at_once, threads = runs_and_threads(
-                options.threads, options.runs_at_once, self.CPU_THREADS_PER_RUN)
+        self.runs_at_once, threads = session_runs(options, self.CPU_THREADS_PER_RUN)
         if options.adaptive:
             self.session = None
             self.steps = _OnnxLayerSteps(Path(model_dir) / self.adaptive_folder, self.layers,

@@ -6,12 +6,12 @@ Order of preference: TensorRT > CUDA > CPU, unless ``device`` forces ``cpu`` or 
 from __future__ import annotations
 
 import logging
-import os
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
+from cusfm_ros.core.cores import usable_cores
 from cusfm_ros.errors import ConfigError, CusfmError
 
 logger = logging.getLogger(__name__)
@@ -48,15 +48,6 @@ def has_gpu_provider() -> bool:
     return any(p in onnxruntime.get_available_providers() for p in _GPU_PROVIDERS)
 
 
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity: ``os.cpu_count()`` counts the
-    host's, also where a container or ``taskset`` gives the process fewer)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
-
-
 def runs_and_threads(threads: int, runs_at_once: int, threads_per_run: int = 1
                      ) -> tuple[int, int]:
     """How a network's CPU work shares ``threads`` cores (0: every usable one): (runs at
@@ -70,6 +61,15 @@ def runs_and_threads(threads: int, runs_at_once: int, threads_per_run: int = 1
     runs = runs_at_once or (cores // threads_per_run if threads_per_run > 0 else 1)
     runs = max(1, min(runs, cores))
     return runs, max(1, cores // runs)
+
+
+def session_runs(options, threads_per_run: int) -> tuple[int, int]:
+    """(runs at once, intra-op threads of each) of a component's sessions from its options
+    (``device``, ``threads``, ``runs_at_once``): ``runs_and_threads`` where they run on the
+    CPU, one run on ``threads`` where a GPU provider runs them."""
+    if not on_cpu(options.device):
+        return 1, options.threads
+    return runs_and_threads(options.threads, options.runs_at_once, threads_per_run)
 
 
 def available_memory_bytes() -> int | None:

@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 
 from cusfm_ros.core.features.detection import bilinear
-from cusfm_ros.core.features.onnx_session import (SideBySide, make_session, on_cpu,
-                                                  runs_and_threads)
+from cusfm_ros.core.features.onnx_session import (SideBySide, make_session,
+                                                  session_runs)
 from cusfm_ros.core.features.types import Features, FeatureError, prepare_image
 from cusfm_ros.errors import ConfigError
 
@@ -165,10 +165,7 @@ class XFeatExtractor:
     def __init__(self, model_dir: str | Path, options: XFeatOptions = XFeatOptions()) -> None:
         self.options = options
         # batch_size: the images extract_batch runs at once
-        self.batch_size, threads = 1, options.threads
-        if on_cpu(options.device):
-            self.batch_size, threads = runs_and_threads(
-                options.threads, options.runs_at_once, self.CPU_THREADS_PER_RUN)
+        self.batch_size, threads = session_runs(options, self.CPU_THREADS_PER_RUN)
         self.session = make_session(Path(model_dir) / "xfeat.onnx", options.device, threads)
         self._side_by_side = SideBySide(self.batch_size)
 

@@ -1,0 +1,14 @@
+"""The CPU cores this process may use."""
+
+from __future__ import annotations
+
+import os
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity: ``os.cpu_count()`` counts the
+    host's, also where a container or ``taskset`` gives the process fewer)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
