@@ -84,23 +84,59 @@ def estimate_two_view(x0: np.ndarray, x1: np.ndarray, options: TwoViewOptions = 
 
 
 def choose_pose(essential: np.ndarray, x0: np.ndarray, x1: np.ndarray, inliers: np.ndarray,
-                 max_depth: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                max_depth: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``cv2.recoverPose``'s choice among the four decompositions of an essential matrix
     (``cam1_from_cam0`` rotation, unit translation, and the inliers in front of both views
     closer than ``max_depth`` baselines), with its candidate order and ties, for all points at
     once: each point's depths in both views come from the least-squares intersection of its
     two rays, where OpenCV triangulates every point four times with an SVD each (1.6 ms per
     call on 1000 matches, more than the RANSAC before it). Points near infinity may fall on
-    the other side of ``max_depth`` than OpenCV puts them; no other difference."""
+    the other side of ``max_depth`` than OpenCV puts them; no other difference.
+
+    The depths are computed once per rotation: with the translation negated they are
+    exactly the negated ones (IEEE negation is exact), so the four candidates cost two
+    passes of ``in_front``'s arithmetic, the rays built once (``in_front`` per candidate held
+    the GIL through ~80 small numpy calls a pair, which the loops' verification threads
+    queued on beside the thread that feeds the GPU)."""
     first, second, direction = cv2.decomposeEssentialMat(essential)
     direction = direction.ravel()
+    unit = direction / max(float(np.linalg.norm(direction)), 1e-300)
+    rays0, rays1 = _rays(x0), _rays(x1)
+    b = np.einsum("ij,ij->i", rays1, rays1)
+    rhs1 = rays1 @ unit
+    good = {}
+    for rotation in (first, second):
+        depth0, depth1 = _depths(rotation, unit, rays0, rays1, b, rhs1)
+        near = (np.abs(depth0) < max_depth) & (np.abs(depth1) < max_depth) & inliers
+        good[id(rotation), 1] = near & (depth0 > 0) & (depth1 > 0)
+        good[id(rotation), -1] = near & (depth0 < 0) & (depth1 < 0)
     best = None
-    for rotation, translation in ((first, direction), (second, direction),
-                                  (first, -direction), (second, -direction)):
-        good = inliers & in_front(rotation, translation, x0, x1, max_depth)
-        if best is None or good.sum() > best[2].sum():
-            best = rotation, translation, good
+    for rotation, sign in ((first, 1), (second, 1), (first, -1), (second, -1)):
+        mask = good[id(rotation), sign]
+        if best is None or mask.sum() > best[2].sum():
+            best = rotation, sign * direction, mask
     return best
+
+
+def _rays(x: np.ndarray) -> np.ndarray:
+    """(K, 3) rays ``[x, y, 1]`` of normalized points (K, 2)."""
+    rays = np.ones((len(x), 3))
+    rays[:, :2] = x
+    return rays
+
+
+def _depths(rotation: np.ndarray, unit: np.ndarray, rays0: np.ndarray, rays1: np.ndarray,
+            b: np.ndarray, rhs1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's depths in both views under ``cam1_from_cam0 = (rotation, unit)``:
+    ``depth1 * ray1 = depth0 * R ray0 + t`` in the least-squares sense (z = 1 rays);
+    ``b`` = |ray1|^2 and ``rhs1`` = ray1 . t, shared by the candidates."""
+    turned = rays0 @ np.asarray(rotation).T
+    a = np.einsum("ij,ij->i", turned, turned)
+    c = np.einsum("ij,ij->i", turned, rays1)
+    rhs0 = -(turned @ unit)
+    det = a * b - c * c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (b * rhs0 + c * rhs1) / det, (c * rhs0 + a * rhs1) / det
 
 
 def in_front(rotation: np.ndarray, translation: np.ndarray, x0: np.ndarray, x1: np.ndarray,
@@ -109,19 +145,10 @@ def in_front(rotation: np.ndarray, translation: np.ndarray, x0: np.ndarray, x1: 
     ``cam1_from_cam0 = (rotation, translation)`` and closer than ``max_depth`` times the
     translation's length: each point's depths from the least-squares intersection of its two
     rays."""
-    rays0 = np.c_[x0, np.ones(len(x0))]
-    rays1 = np.c_[x1, np.ones(len(x1))]
-    b = np.einsum("ij,ij->i", rays1, rays1)
-    # depth1 * ray1 = depth0 * R ray0 + t, in the least-squares sense (z = 1 rays)
-    turned = rays0 @ np.asarray(rotation).T
-    a = np.einsum("ij,ij->i", turned, turned)
-    c = np.einsum("ij,ij->i", turned, rays1)
+    rays0, rays1 = _rays(x0), _rays(x1)
     unit = np.asarray(translation) / max(float(np.linalg.norm(translation)), 1e-300)
-    rhs0, rhs1 = -(turned @ unit), rays1 @ unit
-    det = a * b - c * c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth0 = (b * rhs0 + c * rhs1) / det
-        depth1 = (c * rhs0 + a * rhs1) / det
+    depth0, depth1 = _depths(rotation, unit, rays0, rays1,
+                             np.einsum("ij,ij->i", rays1, rays1), rays1 @ unit)
     return (depth0 > 0) & (depth1 > 0) & (depth0 < max_depth) & (depth1 < max_depth)
 
 
