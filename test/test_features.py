@@ -197,65 +197,6 @@ def test_padded_attention_without_a_mask_equals_the_masked_one(aliked, motorcycl
                                   matches.numpy())
 
 
-@pytest.mark.parametrize("unmasked", [False, True])
-def test_stacked_sides_give_the_log_assignment_of_the_sides_apart(aliked, motorcycle,
-                                                                   unmasked):
-    """``stack_sides``: a batch whose sides have one size runs as one batch of both sides,
-    with the log assignment (to float rounding) and the matches of the sides apart,
-    whichever side is padded; sides of two sizes take the sides-apart path."""
-    from cusfm_ros.models.build import load_lightglue
-    from cusfm_ros.models.nets.lightglue import filter_matches, normalize_keypoints
-
-    f0, f1 = aliked.extract(motorcycle[0]), aliked.extract(motorcycle[1])
-    size = max(len(f0), len(f1)) + 5
-    sides = []
-    for f in (f0, f1):
-        k = normalize_keypoints(torch.from_numpy(f.keypoints_px)[None], 480, 320)
-        d = torch.from_numpy(f.descriptors)[None]
-        pad = size - len(f)
-        sides.append((torch.cat([k, torch.rand(1, pad, 2)], 1),
-                      torch.cat([d, torch.rand(1, pad, d.shape[2])], 1),
-                      torch.arange(size)[None] < len(f)))
-    (k0, d0, m0), (k1, d1, m1) = sides
-    apart = load_lightglue().fuse_attention(unmasked=unmasked)
-    stacked = load_lightglue().fuse_attention(unmasked=unmasked).stack_sides()
-    calls, cat = {}, torch.cat
-
-    def counted(net, *inputs):
-        calls[net] = 0
-
-        def counting(*a, **k):
-            calls[net] += 1
-            return cat(*a, **k)
-        torch.cat = counting
-        try:
-            return net(*inputs)
-        finally:
-            torch.cat = cat
-
-    with torch.no_grad():
-        for masks in ((m0, m1), (m0, None), (None, m1)):
-            want = counted(apart, k0, k1, d0, d1, *masks)
-            got = counted(stacked, k0, k1, d0, d1, *masks)
-            assert calls[stacked] != calls[apart]  # the stacked path ran
-            real = torch.isfinite(want)
-            assert torch.equal(torch.isfinite(got), real)
-            np.testing.assert_allclose(got[real].numpy(), want[real].numpy(), rtol=1e-4,
-                                       atol=1e-3)
-            rows, cols = (torch.cat([torch.nonzero(m[0])[:, 0] if m is not None
-                                     else torch.arange(size), torch.tensor([size])])
-                          for m in masks)  # the real points and the dustbin
-            matches, _ = filter_matches(want[:, rows][:, :, cols], 0.1)
-            # (an unmasked side's random padding spoils the matches of the sides apart too)
-            assert len(matches) > (200 if None not in masks else 0)
-            np.testing.assert_array_equal(
-                filter_matches(got[:, rows][:, :, cols], 0.1)[0].numpy(), matches.numpy())
-        # two sizes: the sides apart
-        want = counted(apart, k0, k1[:, :-3], d0, d1[:, :-3], m0, m1[:, :-3])
-        got = counted(stacked, k0, k1[:, :-3], d0, d1[:, :-3], m0, m1[:, :-3])
-    assert torch.equal(got, want) and calls[stacked] == calls[apart]
-
-
 @pytest.mark.parametrize("threshold, max_keypoints", [(0.2, -1), (0.2, 50), (0.0, 300)])
 def test_numpy_detection_equals_torch(rng, threshold, max_keypoints):
     from cusfm_ros.models.nets.aliked import detect_keypoints as torch_detect

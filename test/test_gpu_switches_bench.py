@@ -21,12 +21,9 @@ def test_both_switches_give_the_defaults_matches_and_features():
     left, right = (image[:320, :480].copy() for image in skimage.data.stereo_motorcycle()[:2])
     extractor = TorchAlikedExtractor(AlikedOptions(device="cpu", max_keypoints=512))
     features = {"left": extractor.extract(left), "right": extractor.extract(right)}
-    rows, agreement = gpu_switches.lightglue_rows(features, [("left", "right")], "cpu", 1)
-    assert [row[0] for row in rows] == ["default", "masked", "stacked_sides"]
-    assert list(agreement) == ["masked", "stacked_sides"]
-    for both, only in agreement.values():
-        assert both == rows[0][3] > 100 and only == 0
-    assert rows[0][3] == rows[1][3] == rows[2][3]
+    rows, both, only = gpu_switches.lightglue_rows(features, [("left", "right")], "cpu", 1)
+    assert [row[0] for row in rows] == ["unmasked_attention (default)", "masked"]
+    assert rows[0][3] == rows[1][3] == both > 100 and only == 0
     rows, differences = gpu_switches.aliked_rows([left, right], "cpu", 1)
     assert [row[0] for row in rows] == ["fixed_shape_pass (default)", "variable"]
     assert rows[0][3] == rows[1][3] > 500 and all(row[2] > 0 for row in rows)

@@ -290,8 +290,7 @@ class TorchLightGlueMatcher:
         self.options = options
         self.device = _device(options.device)
         self.model = load_lightglue(weights).fuse_attention(
-            unmasked=options.unmasked_attention).stack_sides(options.stacked_sides).to(
-            self.device)
+            unmasked=options.unmasked_attention).to(self.device)
         self.steps = _TorchLayerSteps(self.model)
         self.resident = DeviceFeatures(torch, self.device)
         self.graphed = None
@@ -490,8 +489,6 @@ class TorchLightGlueMatcher:
             size = np.full(2, graph_side(int(counts.max()), multiple))
         else:
             size = -(-counts.max(0) // multiple) * multiple
-            if self.options.stacked_sides:  # one size for both, so that they stack
-                size = np.full(2, size.max())
         # a side every pair fills needs no mask (the flash kernel takes none)
         filled = tuple(bool((counts[:, side] == size[side]).all()) for side in (0, 1))
         cuda = self.device.type == "cuda"

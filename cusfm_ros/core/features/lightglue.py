@@ -57,11 +57,6 @@ class LightGlueOptions:
     the flash kernel, which takes no mask, runs instead of the memory-efficient one: 1.19-1.21
     against 1.28 ms a pair on the street's 1,314 pairs (H100), 0.4 % of the matches
     different (fp16 rounding); false: the masked kernel."""
-    stacked_sides: bool = False
-    """The torch backend runs a pass whose two sides have one size (every CUDA-graph pass:
-    both sides are padded to one) as one batch of both sides (``LightGlueNet.stack_sides``):
-    each layer's kernels once over 2B images instead of twice over B; the same values as
-    the sides apart on the CPU (test)."""
     device: str = "auto"
     threads: int = 0
     """CPU cores of the ONNX Runtime path (0: every core this process may use)."""

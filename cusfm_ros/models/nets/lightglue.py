@@ -169,22 +169,6 @@ class CrossBlock(nn.Module):
         return (x0 + self.ffn(torch.cat([x0, m0], -1)), x1 + self.ffn(torch.cat([x1, m1], -1)))
 
 
-    def stacked(self, x: torch.Tensor, keys: torch.Tensor | None, batch: int) -> torch.Tensor:
-        """``forward`` on both sides stacked (rows ``batch``.. are side 1's): each side's
-        queries attend to the other side's keys in one fused call."""
-        def heads(t):
-            return t.unflatten(-1, (self.heads, -1)).transpose(1, 2)
-
-        def other(t):  # each row's partner side: the halves swapped
-            return torch.cat([t[batch:], t[:batch]])
-
-        qk, v = heads(self.to_qk(x)) * self.scale**0.5, heads(self.to_v(x))
-        message = _attention(qk, other(qk), other(v), None if keys is None else other(keys),
-                             scale=1.0, fused=True, unmasked=self.unmasked)
-        message = self.to_out(message.transpose(1, 2).flatten(start_dim=-2))
-        return x + self.ffn(torch.cat([x, message], -1))
-
-
 class TransformerLayer(nn.Module):
     def __init__(self, dim: int, heads: int) -> None:
         super().__init__()
@@ -252,18 +236,6 @@ class LightGlueNet(nn.Module):
         self.log_assignment = nn.ModuleList([MatchAssignment(dim) for _ in range(layers)])
         self.token_confidence = nn.ModuleList([TokenConfidence(dim) for _ in range(layers - 1)])
 
-    stacked_sides = False
-    """``forward`` runs both sides of equal-sized batches as one batch of 2B (``stack_sides``)."""
-
-    def stack_sides(self, stacked: bool = True) -> LightGlueNet:
-        """Batches whose two sides have one size (the torch backend's CUDA-graph passes pad
-        both to one) run as one batch of both sides: each layer's self-attention, projections
-        and feed-forward once over 2B images instead of twice over B, and the cross-attention
-        as one fused call of each side's queries on the other's keys; the same values to
-        rounding. For a model that runs in torch with fused attention."""
-        self.stacked_sides = stacked
-        return self
-
     def fuse_attention(self, fused: bool = True, unmasked: bool = False) -> LightGlueNet:
         """Attention through ``F.scaled_dot_product_attention`` (runs in torch; not for the
         ONNX export, whose graph keeps the explicit products); ``unmasked``: padded batches
@@ -287,26 +259,11 @@ class LightGlueNet(nn.Module):
         ``mask0`` (B, M) and ``mask1`` (B, N), True for real points, let pairs of different
         sizes run as one padded batch: attention and the assignment's softmaxes skip the padded
         points (the exported graph has no masks: one pair at a time)."""
-        if self.stacked_sides and desc0.shape == desc1.shape:
-            return self._forward_stacked(kpts0, kpts1, desc0, desc1, mask0, mask1)
         desc0, desc1 = self.input_proj(desc0), self.input_proj(desc1)
         encoding0, encoding1 = self.posenc(kpts0), self.posenc(kpts1)
         for layer in self.transformers:
             desc0, desc1 = layer(desc0, desc1, encoding0, encoding1, mask0, mask1)
         return self.log_assignment[-1](desc0, desc1, mask0, mask1)
-
-    def _forward_stacked(self, kpts0, kpts1, desc0, desc1, mask0, mask1) -> torch.Tensor:
-        """``forward`` with the sides stacked (``stack_sides``): rows 0..B-1 are side 0's."""
-        batch = desc0.shape[0]
-        x = self.input_proj(torch.cat([desc0, desc1]))
-        encoding = self.posenc(torch.cat([kpts0, kpts1]))
-        keys = None
-        if mask0 is not None or mask1 is not None:
-            keys = torch.cat([torch.ones(desc0.shape[:2], dtype=torch.bool, device=x.device)
-                              if mask is None else mask for mask in (mask0, mask1)])
-        for layer in self.transformers:
-            x = layer.cross_attn.stacked(layer.self_attn(x, encoding, keys), keys, batch)
-        return self.log_assignment[-1](x[:batch], x[batch:], mask0, mask1)
 
 
 class Embed(nn.Module):
