@@ -195,6 +195,17 @@ def test_similarities_are_the_scores_of_one_query_at_a_time(rng):
         assert [(c.image, c.score) for c in ours] == [(c.image, c.score) for c in one]
         assert len(ours) > 5 or index == 40
         assert not {c.image for c in ours} & {"img2", "img9", f"img{index}"}
+    # a block's answers at once: each row's own, with its own exclusions
+    excludes = np.zeros((4, 41), bool)
+    excludes[0, [2, 9]] = excludes[2, 5] = True
+    stamps = [index * 10**9 for index in (3, 17, 40, 0)]
+    for top_k in (3, 41):
+        many = database.ranked_many(block.copy(), stamps, top_k, 2.0, 0.01, excludes)
+        assert len(many) == 4 and all(len(a) == 3 if top_k == 3 else len(a) > 5
+                                      for a in many[:2])
+        for row, stamp, exclude, answer in zip(block, stamps, excludes, many):
+            one = database.ranked(row.copy(), stamp, top_k, 2.0, 0.01, exclude=exclude)
+            assert [(c.image, c.score) for c in answer] == [(c.image, c.score) for c in one]
     assert database.similarities([]).shape == (0, 41)
 
 

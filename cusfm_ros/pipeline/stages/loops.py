@@ -111,14 +111,14 @@ def detect_loops(keyframes: KeyframeSet, features: dict[str, Features],
         computed), in query order."""
         seen = set()
         for index, query in enumerate(frames):
-            if index % QUERY_BLOCK == 0:  # the next block's scores in one product
-                scores = database.similarities(range(index, min(index + QUERY_BLOCK,
-                                                                len(frames))))
-            found = database.ranked(
-                scores[index % QUERY_BLOCK], query.stamp_ns, options.top_k,
-                options.exclude_within_s, options.min_score,
-                exclude=np.abs(path_m - path_m[index]) < options.exclude_within_path_m)
-            for candidate in found:
+            if index % QUERY_BLOCK == 0:  # the next block's scores and answers at once
+                block = range(index, min(index + QUERY_BLOCK, len(frames)))
+                answers = database.ranked_many(
+                    database.similarities(block), [frames[i].stamp_ns for i in block],
+                    options.top_k, options.exclude_within_s, options.min_score,
+                    exclude=np.abs(path_m[None, :] - path_m[block.start:block.stop, None])
+                    < options.exclude_within_path_m)
+            for candidate in answers[index % QUERY_BLOCK]:
                 match = by_name[candidate.image]
                 if match.stamp_ns >= query.stamp_ns:  # each loop once, from its later image
                     continue
