@@ -308,11 +308,17 @@ class FeatureStore:
                 return Matches(group["indices"][()].astype(np.int64),
                                group["confidences"][()])
             if name not in self._blocks:
+                # the block in the readers' dtypes once, read-only, and each pair a view of
+                # it: a copy per pair was two numpy calls, each a wait for the GIL in the
+                # matching stage's main thread (the thread that feeds the GPU) beside the
+                # verification threads (street 300, H100: a fifth of that thread)
                 block = self._file["match_blocks"][name]
-                self._blocks[name] = (block["indices"][()], block["confidences"][()])
+                arrays = (block["indices"][()].astype(np.int64), block["confidences"][()])
+                for array in arrays:
+                    array.flags.writeable = False
+                self._blocks[name] = arrays
             indices, confidences = self._blocks[name]
-            return Matches(indices[start:start + count].astype(np.int64),
-                           confidences[start:start + count].copy())
+            return Matches(indices[start:start + count], confidences[start:start + count])
         if self.has_matches(image1, image0):
             swapped = self.matches(image1, image0)
             return Matches(swapped.indices[:, ::-1].copy(), swapped.confidences)
