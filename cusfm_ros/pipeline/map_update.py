@@ -147,6 +147,13 @@ def _queries(keyframes: KeyframeSet, samples: dict, sample_id: str, store) -> li
                        store.features(k.image_name)) for k in samples[sample_id]]
 
 
+def _localizer(prior: PriorMap, features_options, options) -> Localizer:
+    """A localizer against ``prior`` with the map's extractor and matcher (one query at a
+    time on every core), seeded by the run's options."""
+    return Localizer(prior, None, make_matcher(one_at_a_time(features_options), options.device),
+                     LocalizerOptions(seed=options.seed))
+
+
 def localize_samples(map_dir: str, session_dir: str, sample_ids: list[str], options) -> dict:
     """Localize these rig samples of a session (its run directory) against a map: sample id
     -> result with its raw matches. One unit of work on its own inputs, so that many can run
@@ -159,9 +166,7 @@ def localize_samples(map_dir: str, session_dir: str, sample_ids: list[str], opti
     session = RunDir(Path(session_dir))
     keyframes = load_keyframes(session)
     samples = keyframes.samples()
-    localizer = Localizer(prior, None, make_matcher(one_at_a_time(features_options),
-                                                    options.device),
-                          LocalizerOptions(seed=options.seed))
+    localizer = _localizer(prior, features_options, options)
     with open_features(session, options) as store:
         return {s: localizer.localize(_queries(keyframes, samples, s, store), keep_matches=True)
                 for s in sample_ids}
@@ -201,8 +206,8 @@ def update_map(map_dir: str | Path, bag: str | Path, out_dir: str | Path, option
     new_start = new_input
     if session.pose_graph_poses.is_file():
         new_start = read_tum(session.pose_graph_poses).world_from_body
-    matcher = make_matcher(one_at_a_time(features_options), options.device)
-    localizer = Localizer(prior, None, matcher, LocalizerOptions(seed=options.seed))
+    localizer = _localizer(prior, features_options, options)
+    matcher = localizer.matcher
     samples = new_keyframes.samples()
     localized, results = {}, {}
     raw = _MemoryMatches()  # the localizer's matches: the cross pairs reuse them
