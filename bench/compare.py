@@ -39,7 +39,7 @@ from pathlib import Path
 # children (inputs: compare_inputs.py, systems and their scoring: compare_systems.py).
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from compare_names import INPUTS, OURS, SYSTEMS  # noqa: E402 - the bench folder is no package
+from compare_names import COLMAP, INPUTS, OURS, SYSTEMS  # noqa: E402 - the bench folder is no package
 
 logger = logging.getLogger("compare")
 DEFAULT_SYSTEMS = ("ours_view_graph_sift", "ours_radius_sift", "colmap_incremental",
@@ -76,9 +76,10 @@ def run_system(system: str, spec_path: Path, work: Path, args, code: Path | None
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     bench = HERE if code is None else Path(code).resolve() / "bench"
+    extra = (["--threads", str(getattr(args, "colmap_threads", -1))] if system in COLMAP
+             else getattr(args, "cusfm_args", []))
     command = [sys.executable, str(bench / "compare_systems.py"), system,
-               str(spec_path), str(work), args.device, str(args.max_keypoints),
-               *getattr(args, "cusfm_args", [])]
+               str(spec_path), str(work), args.device, str(args.max_keypoints), *extra]
     env = None
     if code is not None:  # its package first on the path, run from its root
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
@@ -210,6 +211,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     parser.add_argument("--max-keypoints", type=int, default=2048)
     parser.add_argument("--time-limit-s", type=float, default=3600.0)
+    parser.add_argument("--colmap-threads", type=int, default=-1,
+                        help="COLMAP's threads (-1: every core; 1: results that do not vary "
+                             "with the machine's load)")
     parser.add_argument("--image-size", type=int, nargs=2, default=(1241, 376),
                         metavar=("WIDTH", "HEIGHT"), help="simulator inputs' image size")
     args = parser.parse_args(argv)

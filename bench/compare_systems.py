@@ -1,6 +1,8 @@
 """One system of ``bench/compare.py`` on one input, in its own process (so that its peak
 memory is its own): ``python bench/compare_systems.py SYSTEM INPUT_JSON WORK_DIR [DEVICE
-[MAX_KEYPOINTS [CUSFM_ARGS...]]]`` (CUSFM_ARGS: more ``cusfm map`` arguments for ours).
+[MAX_KEYPOINTS [EXTRA...]]]`` (EXTRA: for ours more ``cusfm map`` arguments, for COLMAP
+``--threads N``: its extraction's, matching's and mapper's threads, -1 every core; 1 makes
+its result repeatable on a loaded machine).
 
 Writes ``WORK_DIR/result.json``: ``stages_s`` (seconds by stage), ``trajectory`` (a TUM file
 of the reference camera's ``world_from_cam``, the path every system is scored on),
@@ -128,7 +130,10 @@ def _apply_rig(pycolmap, database: Path, spec: dict) -> None:
         pycolmap.apply_rig_config([config], db)
 
 
-def run_colmap(system: str, spec: dict, work: Path) -> dict:
+def run_colmap(system: str, spec: dict, work: Path, threads: int = -1) -> dict:
+    """``threads``: COLMAP's own (-1: every core). Its multithreaded extraction and matching
+    give results that vary with the machine's load (a 30-frame street once gave the global
+    mapper no model beside other test runs on 2 cores); one thread repeats them."""
     import pycolmap
 
     shutil.rmtree(work / "colmap", ignore_errors=True)
@@ -141,8 +146,11 @@ def run_colmap(system: str, spec: dict, work: Path) -> dict:
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     reader.camera_params = ",".join(str(v) for v in spec["cameras"][reference]["pinhole"])
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
     pycolmap.extract_features(database, spec["images"], image_names=names,
-                              camera_mode=pycolmap.CameraMode.PER_FOLDER, reader_options=reader)
+                              camera_mode=pycolmap.CameraMode.PER_FOLDER, reader_options=reader,
+                              extraction_options=extraction)
     _set_intrinsics(pycolmap, database, spec)
     if rig:
         _apply_rig(pycolmap, database, spec)
@@ -155,18 +163,22 @@ def run_colmap(system: str, spec: dict, work: Path) -> dict:
     tick = time.perf_counter()
     pairing = pycolmap.SequentialPairingOptions()
     pairing.expand_rig_images = rig
-    pycolmap.match_sequential(database, pairing_options=pairing)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
     stages["matching"] = time.perf_counter() - tick
     tick = time.perf_counter()
     if system.startswith("colmap_incremental"):
         options = pycolmap.IncrementalPipelineOptions()
         options.random_seed = 0
+        options.num_threads = threads
         options.use_prior_position = priors > 0
         models = pycolmap.incremental_mapping(database, spec["images"], work / "colmap" /
                                               "sparse", options)
     else:
         options = pycolmap.GlobalPipelineOptions()
         options.random_seed = 0
+        options.num_threads = threads
         models = pycolmap.global_mapping(database, spec["images"], work / "colmap" / "sparse",
                                          options)
     stages["mapping"] = time.perf_counter() - tick
@@ -217,7 +229,9 @@ def main(argv: list[str]) -> int:
     if system in OURS:
         result = run_ours(system, spec, work, device, max_keypoints, argv[5:])
     elif system in COLMAP:
-        result = run_colmap(system, spec, work)
+        extra = argv[5:]
+        threads = int(extra[1]) if extra[:1] == ["--threads"] and len(extra) > 1 else -1
+        result = run_colmap(system, spec, work, threads)
     else:
         raise SystemExit(f"unknown system {system}; one of {', '.join(SYSTEMS)}")
     result["wall_s"] = time.perf_counter() - started
