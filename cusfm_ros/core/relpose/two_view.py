@@ -100,22 +100,29 @@ def choose_pose(essential: np.ndarray, x0: np.ndarray, x1: np.ndarray, inliers: 
     queued on beside the thread that feeds the GPU)."""
     first, second, direction = cv2.decomposeEssentialMat(essential)
     direction = direction.ravel()
-    unit = direction / max(float(np.linalg.norm(direction)), 1e-300)
+    unit = _unit(direction)
     rays0, rays1 = _rays(x0), _rays(x1)
     b = np.einsum("ij,ij->i", rays1, rays1)
     rhs1 = rays1 @ unit
-    good = {}
+    plus, minus = [], []  # each rotation's inliers in front with +t, with -t
     for rotation in (first, second):
         depth0, depth1 = _depths(rotation, unit, rays0, rays1, b, rhs1)
         near = (np.abs(depth0) < max_depth) & (np.abs(depth1) < max_depth) & inliers
-        good[id(rotation), 1] = near & (depth0 > 0) & (depth1 > 0)
-        good[id(rotation), -1] = near & (depth0 < 0) & (depth1 < 0)
+        plus.append(near & (depth0 > 0) & (depth1 > 0))
+        minus.append(near & (depth0 < 0) & (depth1 < 0))
     best = None
-    for rotation, sign in ((first, 1), (second, 1), (first, -1), (second, -1)):
-        mask = good[id(rotation), sign]
+    for rotation, translation, mask in ((first, direction, plus[0]),
+                                        (second, direction, plus[1]),
+                                        (first, -direction, minus[0]),
+                                        (second, -direction, minus[1])):
         if best is None or mask.sum() > best[2].sum():
-            best = rotation, sign * direction, mask
+            best = rotation, translation, mask
     return best
+
+
+def _unit(translation: np.ndarray) -> np.ndarray:
+    """``translation`` scaled to length 1 (a zero one stays zero)."""
+    return np.asarray(translation) / max(float(np.linalg.norm(translation)), 1e-300)
 
 
 def _rays(x: np.ndarray) -> np.ndarray:
@@ -146,7 +153,7 @@ def in_front(rotation: np.ndarray, translation: np.ndarray, x0: np.ndarray, x1: 
     translation's length: each point's depths from the least-squares intersection of its two
     rays."""
     rays0, rays1 = _rays(x0), _rays(x1)
-    unit = np.asarray(translation) / max(float(np.linalg.norm(translation)), 1e-300)
+    unit = _unit(translation)
     depth0, depth1 = _depths(rotation, unit, rays0, rays1,
                              np.einsum("ij,ij->i", rays1, rays1), rays1 @ unit)
     return (depth0 > 0) & (depth1 > 0) & (depth0 < max_depth) & (depth1 < max_depth)
