@@ -128,8 +128,8 @@ def outside_parts(row: dict) -> dict[str, float] | None:
     if outside is None or not spans or any(v is None for span in spans for v in span):
         return None
     per_100 = 100.0 / row["frames"]
-    before = spans[0][0] * per_100
-    after = row["total_per_100_frames_s"] - spans[-1][1] * per_100
+    before = min(span[0] for span in spans) * per_100
+    after = row["total_per_100_frames_s"] - max(span[1] for span in spans) * per_100
     return {"before": before, "between": outside - before - after, "after": after}
 
 

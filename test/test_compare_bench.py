@@ -124,6 +124,29 @@ def test_gpu_busy_is_the_mean_of_nvidia_smis_samples_over_a_run(tmp_path, monkey
     assert busy.percent is None
 
 
+def test_a_column_of_stages_run_side_by_side_is_their_wall_time():
+    """The export column holds the export and the map store, which run side by side: their
+    own seconds less the overlap of their timeline spans; the time outside the stages
+    counts from the first start to the last end."""
+    import compare
+    import gpu
+
+    spans = {"export": [10.0, 11.0], "map": [10.0, 10.5], "mapping": [8.0, 10.0]}
+    stages = {"export": 0.9, "map": 0.45, "mapping": 1.9}
+    assert compare._column_seconds(stages, ("export", "map"), spans) == pytest.approx(0.85)
+    assert compare._column_seconds(stages, ("mapping",), spans) == pytest.approx(1.9)
+    # one after the other: the sum, as before
+    apart = {"export": [10.0, 11.0], "map": [11.0, 11.5]}
+    assert compare._column_seconds(stages, ("export", "map"), apart) == pytest.approx(1.35)
+    assert compare._column_seconds(stages, ("export", "map"), {}) == pytest.approx(1.35)
+    row = {"frames": 100, "failed": None, "total_per_100_frames_s": 12.0,
+           "seconds_per_100_frames": {"mapping": 1.9, "export": 0.85},
+           "timeline_s": {"stages": {"mapping": [8.0, 10.0], "map": [10.0, 10.5],
+                                     "export": [10.0, 11.0]}}}
+    parts = gpu.outside_parts(row)
+    assert parts["before"] == pytest.approx(8.0) and parts["after"] == pytest.approx(1.0)
+
+
 def test_bytecode_note_names_the_packages_compiled_at_every_start(tmp_path, monkeypatch):
     """The machine line says whether the packages load from bytecode: a package with its
     ``.pyc`` where the interpreter looks is not named, one without is; an absent package is

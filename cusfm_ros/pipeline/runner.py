@@ -27,6 +27,7 @@ import os
 import platform
 import shutil
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -232,17 +233,35 @@ class StageRunner:
             current = None
             run.complete_marker.unlink(missing_ok=True)
             self._report(run, bag, entries, 0.0, steps, {"status": "running"})
+            chosen = [stage for stage in self.stages if stage.name in steps]
             try:
-                for index, stage in enumerate(s for s in self.stages if s.name in steps):
+                index = 0
+                while index < len(chosen):
+                    stage = chosen[index]
                     current = stage.name
                     logger.info("=== stage %s (%d/%d) ===", stage.name, index + 1,
                                 len(steps))
-                    stage_started = _process_age_s()
-                    entries[stage.name] = self._run_stage(stage, run, bag, digests, overwrite,
-                                                          beside if index == 0 else None)
-                    self._timeline["stages"][stage.name] = [stage_started, _process_age_s()]
-                    if after_stage is not None:
-                        after_stage(stage.name)
+                    # (the first stage may run on a forked child: no thread beside it then)
+                    partner = (chosen[index + 1] if (index > 0 or beside is None)
+                               and index + 1 < len(chosen)
+                               and self._runs_beside(chosen[index + 1], stage) else None)
+                    if partner is None:
+                        stage_started = _process_age_s()
+                        entries[stage.name] = self._run_stage(
+                            stage, run, bag, digests, overwrite, beside if index == 0 else None)
+                        self._timeline["stages"][stage.name] = [stage_started,
+                                                                _process_age_s()]
+                        if after_stage is not None:
+                            after_stage(stage.name)
+                        index += 1
+                        continue
+                    logger.info("=== stage %s (%d/%d), beside %s ===", partner.name, index + 2,
+                                len(steps), stage.name)
+                    failed, current = self._run_pair(stage, partner, run, bag, digests,
+                                                     overwrite, entries, after_stage)
+                    if failed is not None:
+                        raise failed
+                    index += 2
             except BaseException as exc:
                 self._drop_orphans(run)
                 digests.save()
@@ -261,6 +280,63 @@ class StageRunner:
             return report
 
     # ----------------------------------------------------------------------------- a stage
+    def _runs_beside(self, stage: Stage, previous: Stage) -> bool:
+        """``stage`` starts on a thread beside ``previous``: it asks to
+        (``Stage.beside_previous``), reads none of ``previous``'s outputs and more than one
+        core is allowed."""
+        made = set(previous.outputs + previous.optional_outputs + previous.provides)
+        return (stage.beside_previous and not made & set(stage.inputs + stage.optional_inputs)
+                and thread_count(getattr(self.options, "cpu_threads", 0)) > 1)
+
+    def _run_pair(self, first: Stage, second: Stage, run: RunDir, bag, digests: DigestCache,
+                  overwrite: bool, entries: dict[str, dict],
+                  after_stage: Callable[[str], None] | None
+                  ) -> tuple[BaseException | None, str]:
+        """``first`` here and ``second`` on a thread beside it; returns the error to raise
+        (None: both done) and the stage it belongs to. The thread is always waited for, so a
+        failed or interrupted run never leaves ``second`` writing behind it; ``first``'s
+        error comes first. Each entry's GPU peak and CUDA-graph counts are those of the
+        pair's span (torch counts them per process), marked ``beside``."""
+        outcome: dict[str, Any] = {}
+        timeline = self._timeline["stages"]
+
+        def work() -> None:
+            started = _process_age_s()
+            try:
+                outcome["entry"] = self._run_stage(second, run, bag, digests, overwrite,
+                                                   measure=False)
+            except BaseException as exc:  # raised by the caller once both are done
+                outcome["error"] = exc
+            timeline[second.name] = [started, _process_age_s()]
+
+        _gpu_peak_mb(reset=True)
+        graphs_before = _graph_pass_counts()
+        thread = threading.Thread(target=work, name=f"cusfm-{second.name}")
+        first_started = _process_age_s()
+        thread.start()
+        try:
+            entries[first.name] = self._run_stage(first, run, bag, digests, overwrite,
+                                                  measure=False)
+            timeline[first.name] = [first_started, _process_age_s()]
+            if after_stage is not None:
+                after_stage(first.name)
+        finally:
+            thread.join()
+        if "error" in outcome:
+            return outcome["error"], second.name
+        entries[second.name] = outcome["entry"]
+        shared = {"beside": {first.name: second.name, second.name: first.name}}
+        if (peak := _gpu_peak_mb()) is not None:
+            shared["gpu_peak_mb"] = peak
+        if graphs := _graph_passes_since(graphs_before):
+            shared["cuda_graphs"] = graphs
+        for name in (first.name, second.name):
+            entries[name] = {**entries[name], **shared,
+                             "beside": shared["beside"][name]}
+        if after_stage is not None:
+            after_stage(second.name)
+        return None, second.name
+
     def _device_start(self) -> None:
         """What runs beside the first stage: torch's import (which ``check_device`` does for
         ``cuda`` and a later stage would do for ``auto``) and the device's check. The CUDA
@@ -288,9 +364,12 @@ class StageRunner:
         return device != "cuda" or nvidia_gpu_present()
 
     def _run_stage(self, stage: Stage, run: RunDir, bag, digests: DigestCache,
-                   overwrite: bool, beside: Callable[[], None] | None = None) -> dict:
+                   overwrite: bool, beside: Callable[[], None] | None = None,
+                   measure: bool = True) -> dict:
         """Run ``stage`` unless it is up to date; ``beside``: work for this process while a
-        forked child runs the stage (``pipeline/forked.py``), done here either way."""
+        forked child runs the stage (``pipeline/forked.py``), done here either way;
+        ``measure``: its GPU peak and CUDA-graph passes recorded (not for a stage run beside
+        another: ``_run_pair`` measures the two together)."""
         for artifact in stage.inputs:
             if not getattr(run, artifact).exists():
                 producer = self.producer.get(artifact, "?")
@@ -326,7 +405,8 @@ class StageRunner:
         base = {"stage": stage.name, "fingerprint": fingerprint, "options": own_options,
                 "inputs": context.input_digests, "external": payload["external"]}
         self._write_record(record_path, {**base, "status": "running"})
-        _gpu_peak_mb(reset=True)
+        if measure:
+            _gpu_peak_mb(reset=True)
         graphs_before = _graph_pass_counts()
         if beside is None:
             tick = time.perf_counter()
@@ -341,9 +421,9 @@ class StageRunner:
                    for a in stage.outputs + stage.optional_outputs}
         entry = {**base, "status": "complete", "seconds": round(seconds, 3),
                  "counts": counts, "outputs": outputs}
-        if (peak := _gpu_peak_mb()) is not None:
+        if measure and (peak := _gpu_peak_mb()) is not None:
             entry["gpu_peak_mb"] = peak
-        if graphs := _graph_passes_since(graphs_before):
+        if measure and (graphs := _graph_passes_since(graphs_before)):
             entry["cuda_graphs"] = graphs
         self._write_record(record_path, entry)
         logger.info("stage %s done in %.1f s: %s", stage.name, seconds, counts)
@@ -387,6 +467,7 @@ class StageRunner:
                                      if "gpu_peak_mb" in entry else {}),
                                   **({"cuda_graphs": entry["cuda_graphs"]}
                                      if "cuda_graphs" in entry else {}),
+                                  **({"beside": entry["beside"]} if "beside" in entry else {}),
                                   **entry["counts"], "fingerprint": entry["fingerprint"],
                                   "options": entry["options"]}
         report = {**status, "steps": steps,

@@ -60,6 +60,10 @@ class Stage:
     uses_device: ClassVar[bool] = True
     """False: the stage uses no GPU library (torch, ONNX Runtime); run first, it runs on a
     forked child while the runner imports torch (``pipeline/forked.py``)."""
+    beside_previous: ClassVar[bool] = False
+    """True: the runner starts this stage on a thread beside the stage before it (both in
+    this run, and this one reading none of its outputs), so neither waits for the other
+    (the map store beside the export, which waits on its worker processes)."""
     worker_modules: ClassVar[tuple[str, ...]] = ()
     """Modules the stage's worker processes need: the runner starts the fork server with
     the run, and it imports them while the earlier stages work (``start_process_server``)."""

@@ -130,6 +130,7 @@ class MapStoreStage(Stage):
     inputs = ("keyframes", "features", "mapping_dir")
     optional_inputs = ("vocabulary", "loop_bows", "vocabulary_bows")
     outputs = ("map_dir",)
+    beside_previous = True  # reads no export output: runs on a thread beside it
 
     def run(self, context: StageContext) -> dict:
         run, options = context.run, context.options
