@@ -104,6 +104,28 @@ def test_result_figures_drawn_ahead_on_workers_make_the_same_page(mapped, tmp_pa
     assert left == [1, 2]
 
 
+def test_figures_drawn_from_the_mapping_stages_results_are_the_exported_ones(mapped,
+                                                                           tmp_path):
+    """The mapper draws the results' figures from the mapping stage's outputs while the
+    export writes its copies of them: the same figures, byte for byte; but the colours of
+    the cloud are the export's (this run has ``--rgb``: the mapper waits for the export)."""
+    from cusfm_ros.io.ply import read_ply, write_ply
+    from cusfm_ros.report.page import draw_result_figures
+    from cusfm_ros.report.run_data import read_run_data
+
+    _, run = mapped
+    exported = draw_result_figures((run, 0, 1))
+    mapping = draw_result_figures((run, 0, 1, "mapping"))
+    assert set(exported) >= {"trajectory-top", "cloud", "reprojection"}
+    assert mapping.pop("cloud") != exported.pop("cloud") and mapping == exported
+    shutil.copytree(run, tmp_path / "run")  # as exported without --rgb
+    write_ply(tmp_path / "run" / "points.ply", read_ply(run / "points.ply")[0], None)
+    assert draw_result_figures((tmp_path / "run", 0, 1, "mapping")) == draw_result_figures(
+        (tmp_path / "run", 0, 1))
+    with pytest.raises(ValueError, match="results must be one of"):
+        read_run_data(run, results="colmap")
+
+
 def test_report_needs_a_finished_run(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 1
     err = capsys.readouterr().err

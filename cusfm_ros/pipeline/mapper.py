@@ -45,14 +45,23 @@ class Mapper:
             drawing: list = []
             pool: list = []  # the figure workers' ``start``, once they run
 
+            # the results' figures, drawn on worker processes while the export and the map
+            # store run (0.85 s of page at the end of a 300-frame GPU run): from the mapping
+            # stage's outputs, which the export copies, when this run exports them and
+            # colours no points (the colours are the export's); else from the export's
+            early = (not self.options.export.rgb
+                     and "export" in (steps if steps is not None else STAGE_NAMES))
+
             def after_stage(name: str) -> None:
-                # the figures of the exported results, drawn on worker processes while the
-                # map stage runs (0.85 s of page at the end of a 300-frame GPU run)
-                if name == "export" and workers_ready(PAGE_MODULES, threads):
-                    start = stack.enter_context(worker_processes(PAGE_MODULES, threads))
-                    pool[:] = [start]
-                    drawing[:] = [start(draw_result_figures, (run_dir, part, FIGURE_PARTS))
-                                  for part in range(FIGURE_PARTS)]
+                if drawing or name != ("mapping" if early else "export") \
+                        or not workers_ready(PAGE_MODULES, threads):
+                    return
+                start = stack.enter_context(worker_processes(PAGE_MODULES, threads))
+                pool[:] = [start]
+                results = "mapping" if early else "export"
+                drawing[:] = [start(draw_result_figures,
+                                    (run_dir, part, FIGURE_PARTS, results))
+                              for part in range(FIGURE_PARTS)]
 
             try:
                 report = StageRunner(STAGES, self.options, PAGE_MODULES).solve(

@@ -214,14 +214,16 @@ end of a run; the others are drawn from its results."""
 
 
 def draw_result_figures(arguments: tuple) -> dict[str, str]:
-    """(run directory, part, parts) -> {figure id: base64 PNG} of every ``part``-th figure
-    (of ``parts``) that does not come from ``report.json``: module-level and one argument,
-    for worker processes that draw them while later stages run (the mapper, once the
-    results are exported)."""
+    """(run directory, part, parts[, results]) -> {figure id: base64 PNG} of every
+    ``part``-th figure (of ``parts``) that does not come from ``report.json``: module-level
+    and one argument, for worker processes that draw them while later stages run (the
+    mapper: from the mapping stage's results while the export writes its copies of them,
+    ``results="mapping"``; see ``read_run_data``)."""
     from cusfm_ros.report.run_data import read_run_data
 
-    run_dir, part, parts = arguments
-    specs = [(figure_id, spec) for figure_id, _, spec in figure_specs(read_run_data(run_dir))
+    run_dir, part, parts, *results = arguments
+    data = read_run_data(run_dir, results=results[0] if results else "export")
+    specs = [(figure_id, spec) for figure_id, _, spec in figure_specs(data)
              if figure_id not in REPORT_FIGURES]
     return {figure_id: _draw(spec) for figure_id, spec in specs[part::parts]}
 

@@ -55,7 +55,15 @@ def _optional(what: str, read):
         return None
 
 
-def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None) -> RunData:
+RESULTS = ("export", "mapping")
+"""Where ``read_run_data`` reads the results: the exported files in RUN_DIR, or the mapping
+stage's own outputs, of which the export writes copies (poses.tum, initial_poses.tum,
+extrinsics.yaml; points.ply holds the map points, coloured only with ``export.rgb``): the
+mapper draws the figures from them while the export writes its files."""
+
+
+def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None,
+                  results: str = "export") -> RunData:
     from cusfm_ros.io.extrinsics_yaml import read_extrinsics
     from cusfm_ros.io.keyframes_file import read_keyframes
     from cusfm_ros.io.loops_file import read_loops
@@ -63,11 +71,16 @@ def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None) -
     from cusfm_ros.io.ply import read_ply
     from cusfm_ros.io.tum import read_tum
 
+    if results not in RESULTS:
+        raise ValueError(f"results must be one of {RESULTS}, got {results!r}")
     run = RunDir(run_dir)
+    exported = results == "export"
     data = RunData(run.root)
     data.report = _optional("report.json", lambda: json.loads(run.report.read_text())) or {}
-    data.initial = _optional("initial poses", lambda: read_tum(run.root / "initial_poses.tum"))
-    data.refined = _optional("refined poses", lambda: read_tum(run.root / "poses.tum"))
+    data.initial = _optional("initial poses", lambda: read_tum(
+        run.root / "initial_poses.tum" if exported else run.keyframe_initial_poses))
+    data.refined = _optional("refined poses", lambda: read_tum(
+        run.root / "poses.tum" if exported else run.mapping_poses))
     data.localized = _optional("localized poses", lambda: read_tum(run.root / "localized.tum"))
     queries = data.report.get("queries")
     if isinstance(queries, list) and queries:
@@ -92,14 +105,18 @@ def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None) -
             ib = np.searchsorted(data.refined.stamps_ns, b.stamp_ns)
             if ia < len(positions) and ib < len(positions):
                 data.loops_xy.append((positions[ia], positions[ib]))
-    cloud = _optional("points.ply", lambda: read_ply(run.root / "points.ply"))
+    points = _optional("map points", lambda: read_map_points(run.mapping_points))
+    if exported:
+        cloud = _optional("points.ply", lambda: read_ply(run.root / "points.ply"))
+    else:  # what the export writes to points.ply without colours
+        cloud = None if points is None else (points.points3d_in_world, None)
     if cloud is not None:
         data.points_m, data.rgb = cloud
-    points = _optional("map points", lambda: read_map_points(run.mapping_points))
     if points is not None:
         data.reprojection_px = points.obs_error_px[np.isfinite(points.obs_error_px)]
         data.track_lengths = np.bincount(points.obs_point, minlength=len(points))
-    refined_extrinsics = _optional("extrinsics", lambda: read_extrinsics(run.extrinsics))
+    refined_extrinsics = _optional("extrinsics", lambda: read_extrinsics(
+        run.extrinsics if exported else run.mapping_extrinsics))
     if keyframes is not None and refined_extrinsics is not None:
         for camera in keyframes.rig:
             after = refined_extrinsics.cameras.get(camera.name)
