@@ -47,10 +47,11 @@ class Mapper:
 
             # the results' figures, drawn on worker processes while the export and the map
             # store run (0.85 s of page at the end of a 300-frame GPU run): from the mapping
-            # stage's outputs, which the export copies, when this run exports them and
+            # stage's outputs, which the export copies, when this run maps and exports and
             # colours no points (the colours are the export's); else from the export's
-            early = (not self.options.export.rgb
-                     and "export" in (steps if steps is not None else STAGE_NAMES))
+            chosen = steps if steps is not None else STAGE_NAMES
+            early = (not self.options.export.rgb and "mapping" in chosen
+                     and "export" in chosen)
 
             def after_stage(name: str) -> None:
                 if drawing or name != ("mapping" if early else "export") \
