@@ -26,16 +26,21 @@ class _Options:
     cpu_threads: int = 2
 
 
-class _First(Stage):
-    """Writes poses.tum; ``behaviour`` says what else it does."""
-
-    name = "first"
-    outputs = ("poses",)
-    uses_device = False
+class _ToyStage(Stage):
+    """``behaviour`` says what the stage does besides writing its output; ``event`` and
+    ``log`` tie it to the other stage's timing."""
 
     def __init__(self, behaviour: str = "", event: threading.Event | None = None,
                  log: list | None = None) -> None:
         self.behaviour, self.event, self.log = behaviour, event, log
+
+
+class _First(_ToyStage):
+    """Writes poses.tum."""
+
+    name = "first"
+    outputs = ("poses",)
+    uses_device = False
 
     def run(self, context) -> dict:
         if self.log is not None:
@@ -50,16 +55,12 @@ class _First(Stage):
         return {"wrote": 1}
 
 
-class _Second(Stage):
-    """Writes map/; ``behaviour`` says what else it does."""
+class _Second(_ToyStage):
+    """Writes map/."""
 
     name = "second"
     outputs = ("map_dir",)
     beside_previous = True
-
-    def __init__(self, behaviour: str = "", event: threading.Event | None = None,
-                 log: list | None = None) -> None:
-        self.behaviour, self.event, self.log = behaviour, event, log
 
     def run(self, context) -> dict:
         if self.log is not None:

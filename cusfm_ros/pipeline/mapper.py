@@ -50,16 +50,14 @@ class Mapper:
             # stage's outputs, which the export copies, when this run maps and exports and
             # colours no points (the colours are the export's); else from the export's
             chosen = steps if steps is not None else STAGE_NAMES
-            early = (not self.options.export.rgb and "mapping" in chosen
-                     and "export" in chosen)
+            results = ("mapping" if not self.options.export.rgb and "mapping" in chosen
+                       and "export" in chosen else "export")
 
             def after_stage(name: str) -> None:
-                if drawing or name != ("mapping" if early else "export") \
-                        or not workers_ready(PAGE_MODULES, threads):
+                if drawing or name != results or not workers_ready(PAGE_MODULES, threads):
                     return
                 start = stack.enter_context(worker_processes(PAGE_MODULES, threads))
                 pool[:] = [start]
-                results = "mapping" if early else "export"
                 drawing[:] = [start(draw_result_figures,
                                     (run_dir, part, FIGURE_PARTS, results))
                               for part in range(FIGURE_PARTS)]

@@ -246,11 +246,8 @@ class StageRunner:
                                and index + 1 < len(chosen)
                                and self._runs_beside(chosen[index + 1], stage) else None)
                     if partner is None:
-                        stage_started = _process_age_s()
-                        entries[stage.name] = self._run_stage(
+                        entries[stage.name] = self._run_timed(
                             stage, run, bag, digests, overwrite, beside if index == 0 else None)
-                        self._timeline["stages"][stage.name] = [stage_started,
-                                                                _process_age_s()]
                         if after_stage is not None:
                             after_stage(stage.name)
                         index += 1
@@ -298,44 +295,46 @@ class StageRunner:
         error comes first. Each entry's GPU peak and CUDA-graph counts are those of the
         pair's span (torch counts them per process), marked ``beside``."""
         outcome: dict[str, Any] = {}
-        timeline = self._timeline["stages"]
 
         def work() -> None:
-            started = _process_age_s()
             try:
-                outcome["entry"] = self._run_stage(second, run, bag, digests, overwrite,
+                outcome["entry"] = self._run_timed(second, run, bag, digests, overwrite,
                                                    measure=False)
             except BaseException as exc:  # raised by the caller once both are done
                 outcome["error"] = exc
-            timeline[second.name] = [started, _process_age_s()]
 
         _gpu_peak_mb(reset=True)
         graphs_before = _graph_pass_counts()
         thread = threading.Thread(target=work, name=f"cusfm-{second.name}")
-        first_started = _process_age_s()
         thread.start()
         try:
-            entries[first.name] = self._run_stage(first, run, bag, digests, overwrite,
+            entries[first.name] = self._run_timed(first, run, bag, digests, overwrite,
                                                   measure=False)
-            timeline[first.name] = [first_started, _process_age_s()]
             if after_stage is not None:
                 after_stage(first.name)
         finally:
             thread.join()
         if "error" in outcome:
             return outcome["error"], second.name
-        entries[second.name] = outcome["entry"]
-        shared = {"beside": {first.name: second.name, second.name: first.name}}
+        shared = {}
         if (peak := _gpu_peak_mb()) is not None:
             shared["gpu_peak_mb"] = peak
         if graphs := _graph_passes_since(graphs_before):
             shared["cuda_graphs"] = graphs
-        for name in (first.name, second.name):
-            entries[name] = {**entries[name], **shared,
-                             "beside": shared["beside"][name]}
+        entries[first.name] = {**entries[first.name], **shared, "beside": second.name}
+        entries[second.name] = {**outcome["entry"], **shared, "beside": first.name}
         if after_stage is not None:
             after_stage(second.name)
         return None, second.name
+
+    def _run_timed(self, stage: Stage, run: RunDir, bag, digests: DigestCache,
+                   overwrite: bool, beside: Callable[[], None] | None = None,
+                   measure: bool = True) -> dict:
+        """``_run_stage``, its span (seconds of process age) put on the run's timeline."""
+        started = _process_age_s()
+        entry = self._run_stage(stage, run, bag, digests, overwrite, beside, measure)
+        self._timeline["stages"][stage.name] = [started, _process_age_s()]
+        return entry
 
     def _device_start(self) -> None:
         """What runs beside the first stage: torch's import (which ``check_device`` does for

@@ -75,12 +75,13 @@ def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None,
         raise ValueError(f"results must be one of {RESULTS}, got {results!r}")
     run = RunDir(run_dir)
     exported = results == "export"
+    initial_path, refined_path, extrinsics_path = (
+        (run.initial_poses, run.poses, run.extrinsics) if exported
+        else (run.keyframe_initial_poses, run.mapping_poses, run.mapping_extrinsics))
     data = RunData(run.root)
     data.report = _optional("report.json", lambda: json.loads(run.report.read_text())) or {}
-    data.initial = _optional("initial poses", lambda: read_tum(
-        run.root / "initial_poses.tum" if exported else run.keyframe_initial_poses))
-    data.refined = _optional("refined poses", lambda: read_tum(
-        run.root / "poses.tum" if exported else run.mapping_poses))
+    data.initial = _optional("initial poses", lambda: read_tum(initial_path))
+    data.refined = _optional("refined poses", lambda: read_tum(refined_path))
     data.localized = _optional("localized poses", lambda: read_tum(run.root / "localized.tum"))
     queries = data.report.get("queries")
     if isinstance(queries, list) and queries:
@@ -115,8 +116,7 @@ def read_run_data(run_dir: str | Path, ground_truth: str | Path | None = None,
     if points is not None:
         data.reprojection_px = points.obs_error_px[np.isfinite(points.obs_error_px)]
         data.track_lengths = np.bincount(points.obs_point, minlength=len(points))
-    refined_extrinsics = _optional("extrinsics", lambda: read_extrinsics(
-        run.extrinsics if exported else run.mapping_extrinsics))
+    refined_extrinsics = _optional("extrinsics", lambda: read_extrinsics(extrinsics_path))
     if keyframes is not None and refined_extrinsics is not None:
         for camera in keyframes.rig:
             after = refined_extrinsics.cameras.get(camera.name)
