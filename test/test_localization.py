@@ -457,7 +457,7 @@ def test_map_update_fixed_keeps_the_map_and_adjust_improves_both_sessions(mapped
     assert np.array_equal(merged.sample_world_from_rig[index], old.sample_world_from_rig)
     assert len(merged) > len(old) and merged.num_keyframes == 2 * old.num_keyframes
     assert len(read_tum(fixed / "poses.tum")) == 120
-    for path in ("extrinsics.yaml", "points.ply", "sparse/images.txt", "results.mcap",
+    for path in ("extrinsics.yaml", "points.ply", "sparse/images.bin", "results.mcap",
                  "report.html"):
         assert (fixed / path).is_file(), path
     assert 'id="cloud"' in (fixed / "report.html").read_text()
