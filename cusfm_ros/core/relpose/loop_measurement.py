@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cusfm_ros.core.accelerator import Arrays
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.relpose.stereo import (StereoPoseOptions, UnrefinedStereoPose,
                                           unrefined_stereo_pose)
@@ -54,15 +53,14 @@ class UnrefinedLoop:
                                "stereo")
 
 
-def refine_loops(measured: list, arrays: Arrays = Arrays()) -> list:
+def refine_loops(measured: list) -> list:
     """``measured`` with every ``UnrefinedLoop`` refined (all in one ``StereoRefiner``
-    solve, its point arithmetic on ``arrays``: numpy, or torch on a GPU) into a
-    ``LoopMeasurement``, or into the ``GeometryError`` message when its refinement failed;
-    other items unchanged."""
+    solve) into a ``LoopMeasurement``, or into the ``GeometryError`` message when its
+    refinement failed; other items unchanged."""
     pending = [i for i, item in enumerate(measured) if isinstance(item, UnrefinedLoop)]
     if not pending:
         return list(measured)
-    refined = StereoRefiner(arrays=arrays).solve([measured[i].stereo.problem for i in pending])
+    refined = StereoRefiner().solve([measured[i].stereo.problem for i in pending])
     out = list(measured)
     for i, map_from_left in zip(pending, refined):
         try:

@@ -175,10 +175,9 @@ class StereoRefiner:
     -> refined ``map_from_left`` (L, 4, 4), in the order given."""
 
     def __init__(self, options: StereoRefinementOptions = StereoRefinementOptions(),
-                 device: str = "cpu", arrays: Arrays | None = None) -> None:
-        """The point arithmetic on ``arrays`` when given, else where ``device`` says."""
+                 device: str = "cpu") -> None:
         self.options = options
-        self.arrays = Arrays.for_device(device) if arrays is None else arrays
+        self.arrays = Arrays.for_device(device)
 
     def solve(self, problems: list[StereoProblem]) -> np.ndarray:
         out = np.empty((len(problems), 4, 4))

@@ -17,15 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cusfm_ros.core.accelerator import Arrays
 from cusfm_ros.core.features.types import Features
 from cusfm_ros.core.geometry import Rigid3
 from cusfm_ros.core.graph.pose_graph import (LoopConstraint, PoseGraphOptimizer,
                                               PoseGraphOptions, PoseGraphResult)
 from cusfm_ros.core.keyframes import KeyframeSet
 from cusfm_ros.core.relpose.loop_measurement import (LoopMeasurement, LoopView,
-                                                      UnrefinedLoop, measure_loop,
-                                                      refine_loops)
+                                                      measure_loop, refine_loops)
 from cusfm_ros.core.retrieval.loops import LoopRecord
 from cusfm_ros.core.trajectory import Trajectory
 from cusfm_ros.errors import GeometryError
@@ -113,19 +111,16 @@ _LOOPS_PER_TASK = 8
 in fours or more, 2.3 alone, scipy's least squares 4.0; street 300, one core)."""
 
 
-def _unrefined(loop_arguments: tuple) -> UnrefinedLoop | LoopMeasurement | str:
-    """``measure_loop`` of one loop, its stereo refinement left to do; a failed loop gives
-    why."""
-    try:
-        return measure_loop(*loop_arguments, refine=False)
-    except GeometryError as exc:
-        return str(exc)
-
-
 def _measure_all(arguments: list[tuple]) -> list[LoopMeasurement | str]:
     """``measure_loop`` of a few loops (in a worker process), their stereo refinements in
     one solve; a failed loop gives why."""
-    return refine_loops([_unrefined(loop_arguments) for loop_arguments in arguments])
+    measured = []
+    for loop_arguments in arguments:
+        try:
+            measured.append(measure_loop(*loop_arguments, refine=False))
+        except GeometryError as exc:
+            measured.append(str(exc))
+    return refine_loops(measured)
 
 
 def _solve(arguments: tuple) -> PoseGraphResult:
@@ -138,13 +133,11 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                         features: dict[str, Features], matcher,
                         options: PoseGraphOptions = PoseGraphOptions(), frame_type: str = "rig",
                         seed: int = 0, cache: FeatureStore | None = None,
-                        extra: list[LoopConstraint] = (), threads: int = 0,
-                        refine_on: Arrays | None = None) -> PoseGraphOutput:
+                        extra: list[LoopConstraint] = (), threads: int = 0
+                        ) -> PoseGraphOutput:
     """Refined world_from_rig per rig sample. ``extra`` constraints join the measured ones
     (benchmarks inject false loops). Missing matches are computed on ``threads`` CPU threads
-    (0: every core); the result does not depend on it. The loops are measured on worker
-    processes, a few at a time, or with ``refine_on`` (torch on a GPU) in this process,
-    every stereo refinement in one solve there (the same poses up to rounding)."""
+    (0: every core); the result does not depend on it."""
     rig = keyframes.rig
     graph = _Graph(keyframes, frame_type)
     images = {k.image_name: k for k in keyframes.keyframes}
@@ -223,15 +216,9 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
                 matches_pm.indices if matches_pm is not None else None,
                 edge.two_view, prior, seed)
 
-    if refine_on is not None:
-        # the refinements, ~70 % of a loop's measurement on a CPU core, as one batched solve
-        # on the GPU; the linear steps (~0.5 ms a loop) here, no worker processes to feed
-        measured_all = refine_loops([_unrefined(arguments) for arguments in measurements()],
-                                    refine_on)
-    else:
-        measured_all = [measured for _, part in process_map(
-            _measure_all, chunks(measurements(), _LOOPS_PER_TASK), threads, chunk=1,
-            minimum=8) for measured in part]
+    measured_all = [measured for _, part in process_map(
+        _measure_all, chunks(measurements(), _LOOPS_PER_TASK), threads, chunk=1, minimum=8)
+        for measured in part]
     constraints, kinds, skipped = [], {}, []
     for index, measured in enumerate(measured_all):
         edge, query, match = measured_items[index][:3]
@@ -268,13 +255,6 @@ def optimize_pose_graph(keyframes: KeyframeSet, loops: list[LoopRecord],
     return PoseGraphOutput(Trajectory(graph.stamps, world_from_rig), summary)
 
 
-def _refinement_arrays(device: str) -> Arrays | None:
-    """Where the loops' stereo refinements run: torch on the GPU that ``device`` means, else
-    None (numpy on the worker processes)."""
-    arrays = Arrays.for_device(device)
-    return arrays if arrays.torch is not None else None
-
-
 class PoseGraphStage(Stage):
     name = "pose_graph"
     sections = {"pose_graph": PoseGraphOptions}
@@ -300,8 +280,7 @@ class PoseGraphStage(Stage):
             output = optimize_pose_graph(keyframes, loops, features,
                                          LazyMatcher(options.features, options.device),
                                          options.pose_graph, options.frame_type, options.seed,
-                                         cache, extra, options.cpu_threads,
-                                         _refinement_arrays(options.device))
+                                         cache, extra, options.cpu_threads)
         write_tum(run.pose_graph_poses, output.world_from_rig)
         with atomic_write(run.pose_graph_summary) as handle:
             json.dump(output.summary, handle, indent=2)
