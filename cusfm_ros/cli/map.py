@@ -33,7 +33,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         default=None, metavar="LINE_DELAY_S",
                         help="model a rolling shutter with this line delay (0: global)")
     parser.add_argument("--colmap-binary", action=argparse.BooleanOptionalAction, default=None,
-                        help="write sparse/ as COLMAP .bin (the default; --no-colmap-binary: .txt)")
+                        help="sparse/ as COLMAP .bin (the default; --no-colmap-binary: .txt)")
     parser.add_argument("--rgb", action=argparse.BooleanOptionalAction, default=None,
                         help="colour the points from the images")
     add_config_arguments(parser)

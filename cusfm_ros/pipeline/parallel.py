@@ -22,7 +22,8 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import wait as wait_for
 from itertools import chain, islice
 from typing import TypeVar
 
@@ -153,8 +154,7 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
         for item in chain(head, iterator):
             yield item, function(item)
         return
-    pool = ProcessPoolExecutor(processes, mp_context=_process_context(function),
-                               initializer=_worker_process, initargs=(os.getpid(),))
+    pool = shared_pool(processes, function)
     pending: deque = deque()
     parts = chain(chunks(head, chunk), chunks(iterator, chunk))
     try:
@@ -167,9 +167,49 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
             done, future = pending.popleft()
             yield from zip(done, future.result())
     except BaseException:  # an error, Ctrl-C or a caller that stopped early
-        pool.shutdown(wait=False, cancel_futures=True)
+        for _, future in pending:  # what has not begun; the pool stays for other work
+            future.cancel()
         raise
-    pool.shutdown()
+
+
+_SHARED: dict = {"pool": None, "size": 0}
+_SHARED_LOCK = threading.Lock()
+
+
+def shared_pool(processes: int, function: Callable | None = None) -> ProcessPoolExecutor:
+    """This process's pool of worker processes, kept from one use to the next (every stage's
+    process work goes to the same workers, started once; ``warm_workers`` starts them
+    ahead): one of at least ``processes`` workers, made now when there is none, it is
+    smaller or a worker died. On the 16-core GPU machine a fresh pool gave the pose graph's
+    first loops back 0.4-0.5 s after it asked (street 200), where their work is ~20 ms."""
+    with _SHARED_LOCK:
+        pool = _SHARED["pool"]
+        if pool is None or _SHARED["size"] < processes or getattr(pool, "_broken", False):
+            if pool is not None:
+                pool.shutdown(wait=False)  # its work in flight ends; new work goes here
+            pool = ProcessPoolExecutor(processes, mp_context=_process_context(function),
+                                       initializer=_worker_process, initargs=(os.getpid(),))
+            _SHARED.update(pool=pool, size=processes)
+        return pool
+
+
+def warm_workers(processes: int = 0) -> threading.Thread | None:
+    """Start ``shared_pool``'s workers now, on a background thread (each is forked from the
+    fork server once it has imported its modules), so that the first stage with process
+    work finds them running; None where one process is allowed or there is no fork server
+    (spawned workers would each import everything on the cores the run needs)."""
+    processes = thread_count(processes)
+    if processes == 1 or not _SERVER_MODULES:
+        return None
+
+    def start() -> None:
+        pool = shared_pool(processes)
+        for future in [pool.submit(os.getpid) for _ in range(processes)]:
+            future.result()
+
+    thread = threading.Thread(target=start, name="cusfm_workers_start", daemon=True)
+    thread.start()
+    return thread
 
 
 def map_on_processes(processes: int = 0, fewest: int = 4, chunk: int = 8, minimum: int = 64
@@ -238,13 +278,13 @@ def _runs_here(modules: Iterable[str], processes: int) -> bool:
 @contextlib.contextmanager
 def worker_processes(modules: Iterable[str] = (), processes: int = 0
                    ) -> Iterator[Callable[[Callable[[Item], Result], Item], Callable[[], Result]]]:
-    """``start(function, argument)``: ``function(argument)`` begun on a worker process from
-    the fork server (up to ``processes`` at once, the rest queued), for work this process
-    overlaps with its own (the COLMAP text export's parts); ``start`` returns what waits
-    for the result. Where ``call_on_process`` would run here (one process allowed, or a
-    server that has not imported ``modules``), ``start`` runs it at once. Leaving the block
-    by an error cancels what has not begun and leaves running workers to end by themselves
-    (the caller's temporary output is removed under them)."""
+    """``start(function, argument)``: ``function(argument)`` begun on a worker process of
+    ``shared_pool`` (of ``processes`` workers at least, the rest queued), for work this
+    process overlaps with its own (the COLMAP text export's parts); ``start`` returns what
+    waits for the result. Where ``call_on_process`` would run here (one process allowed, or a
+    server that has not imported ``modules``), ``start`` runs it at once. The block ends
+    when what it started has; leaving it by an error cancels what has not begun and leaves
+    running work to end by itself (the caller's temporary output is removed under it)."""
     if _runs_here(modules, processes):
         def start_here(function: Callable[[Item], Result], argument: Item
                        ) -> Callable[[], Result]:
@@ -253,27 +293,23 @@ def worker_processes(modules: Iterable[str] = (), processes: int = 0
 
         yield start_here
         return
-    pools: list[ProcessPoolExecutor] = []
+    started: list[Future] = []
 
     def start(function: Callable[[Item], Result], argument: Item) -> Callable[[], Result]:
-        if not pools:  # its workers start as work comes, up to ``processes``
-            pools.append(ProcessPoolExecutor(thread_count(processes),
-                                             mp_context=_process_context(function),
-                                             initializer=_worker_process,
-                                             initargs=(os.getpid(),)))
-        return pools[0].submit(function, argument).result
+        future = shared_pool(thread_count(processes), function).submit(function, argument)
+        started.append(future)
+        return future.result
 
     try:
         yield start
     except BaseException:
-        for pool in pools:
-            pool.shutdown(wait=False, cancel_futures=True)
+        for future in started:
+            future.cancel()
         raise
-    for pool in pools:
-        pool.shutdown()
+    wait_for(started)
 
 
-def _process_context(function: Callable) -> multiprocessing.context.BaseContext:
+def _process_context(function: Callable | None) -> multiprocessing.context.BaseContext:
     """Where the workers come from: forked from a fork server (a fresh interpreter, started
     once per run, that has imported the main module and ``function``'s module), else
     spawned. Spawned, every worker imported them itself: 16 workers x ~2 s of imports
@@ -281,8 +317,9 @@ def _process_context(function: Callable) -> multiprocessing.context.BaseContext:
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")
-    # no effect once the server runs (it keeps what it imported at its start)
-    context.set_forkserver_preload(["__main__", function.__module__])
+    if function is not None:
+        # no effect once the server runs (it keeps what it imported at its start)
+        context.set_forkserver_preload(["__main__", function.__module__])
     return context
 
 
