@@ -320,3 +320,28 @@ def test_sampled_training_rows_equal_those_of_the_concatenated_descriptors():
     total = sum(len(d) for d in documents)
     rows = np.random.default_rng(1).choice(total, total // 3, replace=False)
     np.testing.assert_array_equal(_rows_of(documents, rows), np.concatenate(documents)[rows])
+
+
+@pytest.mark.parametrize("kind", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_vocabulary_from_descriptors_copied_once_is_the_host_arrays_one(rng, kind):
+    """The GPU path's build (every image's descriptors copied to the device once, the
+    sampled rows and the IDF's words taken there; torch's CPU tensors in CI) gives the
+    tree, weights and words that the same arrays give from the host's sampled rows and
+    images, and an image of another dimension is refused."""
+    from cusfm_ros.pipeline.stages.vocabulary import _build_there, _rows_of
+
+    arrays = arrays_of(kind)
+    points, _ = clustered(rng)
+    documents = np.array_split(points, 7) + [np.zeros((0, points.shape[1]), np.float32)]
+    rows = np.random.default_rng(3).choice(len(points), len(points) // 2, replace=False)
+    words: list = []
+    there = _build_there(documents, rows, SMALL, arrays, words)
+    host = VocabularyTree.build(_rows_of(documents, rows), SMALL, arrays=arrays)
+    host_words = host.set_idf(documents, keep_words=True)
+    for name in ("centroids", "children", "words", "idf"):
+        np.testing.assert_array_equal(getattr(there, name), getattr(host, name))
+    assert len(words) == len(host_words) == len(documents) and len(words[-1]) == 0
+    for ours, theirs in zip(words, host_words):
+        np.testing.assert_array_equal(ours, theirs)
+    with pytest.raises(VocabularyError, match="differ in dimension"):
+        _build_there([points, points[:, :8]], None, SMALL, arrays, None)

@@ -144,12 +144,14 @@ def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int,
     centres on a seeded sample of that many, then assigns all of its points and takes one
     last update step over them: the FLOPs of a level stay bounded. ``max_batch_elements`` bounds
     one padded batch (points x dimensions). ``arrays``: where the batched products run (the
-    points are copied there once)."""
+    points are copied there once; a tensor already there is used as it is)."""
     k = branching
-    x_all = np.ascontiguousarray(points, np.float32)
-    w_all = np.asarray(weights, np.float32)
-    x_there, w_there = arrays.put(x_all), arrays.put(w_all)
-    dim = x_all.shape[1]
+    if arrays.torch is not None and isinstance(points, arrays.torch.Tensor):
+        x_there = points.to(arrays.device, arrays.torch.float32)
+    else:
+        x_there = arrays.put(np.ascontiguousarray(points, np.float32))
+    w_there = arrays.put(np.asarray(weights, np.float32))
+    dim = int(x_there.shape[1])
     centroids = [np.zeros((1, dim), np.float32)]
     children = np.full((1, k), -1, np.int64)
     node = np.zeros(len(points), np.int64)  # every point's node at this level; -1: in a leaf

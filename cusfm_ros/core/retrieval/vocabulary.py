@@ -90,16 +90,23 @@ class VocabularyTree:
     @classmethod
     def build(cls, descriptors: np.ndarray, options: VocabularyOptions = VocabularyOptions(),
               weights: np.ndarray | None = None,
-              documents: list[np.ndarray] | None = None, device: str = "cpu"
-              ) -> VocabularyTree:
+              documents: list[np.ndarray] | None = None, device: str = "cpu",
+              arrays: Arrays | None = None) -> VocabularyTree:
         """Hierarchical k-means over (weighted) descriptors; ``documents`` (descriptor sets
         per image) give the IDF weights, else every word gets IDF 1. ``device``: ``cuda`` (or
         ``auto`` with a GPU) runs the k-means (and the tree's quantization) with torch on the
-        GPU."""
-        points = np.ascontiguousarray(descriptors, dtype=np.float32)
+        GPU; ``descriptors`` may be a torch tensor there already); ``arrays``, when given,
+        says where instead."""
+        arrays = Arrays.for_device(device) if arrays is None else arrays
+        if arrays.torch is not None and isinstance(descriptors, arrays.torch.Tensor):
+            points = descriptors
+            finite = bool(arrays.torch.isfinite(points).all()) if len(points) else True
+        else:
+            points = np.ascontiguousarray(descriptors, dtype=np.float32)
+            finite = bool(np.all(np.isfinite(points)))
         if points.ndim != 2 or len(points) == 0:
             raise VocabularyError("no descriptors to build a vocabulary from")
-        if not np.all(np.isfinite(points)):
+        if not finite:
             raise VocabularyError("descriptors contain NaN or inf")
         weights = np.ones(len(points)) if weights is None else np.asarray(weights, float)
         k, depth = options.branching, options.depth
@@ -113,12 +120,11 @@ class VocabularyTree:
                                       f"got {len(points)}")
             options = VocabularyOptions(k, shrunk, options.kmeans_iterations, options.seed)
         tree = hierarchical_kmeans(points, weights, k, options.depth,
-                                   options.kmeans_iterations, options.seed,
-                                   arrays=Arrays.for_device(device))
+                                   options.kmeans_iterations, options.seed, arrays=arrays)
         words = np.full(len(tree.leaf), -1, np.int64)
         words[tree.leaf] = np.arange(int(tree.leaf.sum()))
         tree = cls(tree.centroids, tree.children, words,
-                   np.ones(int(tree.leaf.sum()), np.float32), options).use_device(device)
+                   np.ones(int(tree.leaf.sum()), np.float32), options).use_arrays(arrays)
         if documents is not None:
             tree.set_idf(documents)
         return tree
@@ -128,15 +134,23 @@ class VocabularyTree:
         """IDF = log(N / n_w) over the images (descriptor sets) the vocabulary is used for;
         ``documents`` may be any iterable (streamed: ``quantize_stream``). ``keep_words``:
         returns each image's words (``quantize`` of it), which it had to compute anyway."""
-        counts, images, kept = np.zeros(self.num_words), 0, []
-        for words in self.quantize_stream(documents, batch_descriptors):
-            images += 1
-            if len(words):
-                counts[np.unique(words)] += 1
-            if keep_words:
-                kept.append(words)
-        self.idf = np.log(max(images, 1) / np.maximum(counts, 1)).astype(np.float32)
+        kept = self.set_idf_from_words(self.quantize_stream(documents, batch_descriptors),
+                                       keep_words)
         return kept if keep_words else None
+
+    def set_idf_from_words(self, words: Iterable[np.ndarray], keep_words: bool = False
+                           ) -> list[np.ndarray]:
+        """``set_idf`` from each image's words (``quantize`` of its descriptors); returns
+        them as a list with ``keep_words``, else an empty one."""
+        counts, images, kept = np.zeros(self.num_words), 0, []
+        for image_words in words:
+            images += 1
+            if len(image_words):
+                counts[np.unique(image_words)] += 1
+            if keep_words:
+                kept.append(image_words)
+        self.idf = np.log(max(images, 1) / np.maximum(counts, 1)).astype(np.float32)
+        return kept
 
     # --------------------------------------------------------------------------- quantize
     def use_device(self, device: str) -> VocabularyTree:
@@ -187,10 +201,21 @@ class VocabularyTree:
         descriptors at a time (bounds the (chunk, K, D) gathered centroids: 400k SIFT
         descriptors in 0.97 s on 2 cores, 8.5 s all at once; default 4096 on numpy, 32768
         on a GPU), on numpy or on the GPU (``use_device``)."""
-        if chunk is None:
-            chunk = 4096 if self.arrays.torch is None else 32768
         points = np.asarray(descriptors, dtype=np.float32)
         self._check_dim(points)
+        return self._quantized(points, self.arrays.put, chunk)
+
+    def quantize_there(self, descriptors, chunk: int | None = None) -> np.ndarray:
+        """``quantize`` of descriptors already where this tree quantizes (a torch tensor on
+        the GPU after ``use_device("cuda")``): no copy of them to make."""
+        if descriptors.ndim != 2 or (len(descriptors) and descriptors.shape[1] != self.dim):
+            raise VocabularyError(f"descriptors of shape {tuple(descriptors.shape)}; the "
+                                  f"vocabulary was built for dimension {self.dim}")
+        return self._quantized(descriptors, lambda part: part, chunk)
+
+    def _quantized(self, points, there, chunk: int | None) -> np.ndarray:
+        if chunk is None:
+            chunk = 4096 if self.arrays.torch is None else 32768
         if self._there is None:
             squared_norms = np.einsum("md,md->m", self.centroids, self.centroids)
             self._there = tuple(self.arrays.put(a) for a in (self.centroids, squared_norms,
@@ -198,7 +223,7 @@ class VocabularyTree:
         leaves = np.empty(len(points), np.int64)
         for start in range(0, len(points), chunk):
             leaves[start:start + chunk] = self.arrays.get(
-                _descend(*self._there, self.arrays.put(points[start:start + chunk])))
+                _descend(*self._there, there(points[start:start + chunk])))
         return self.words[leaves]
 
     # ----------------------------------------------------------------------- (de)serialize
