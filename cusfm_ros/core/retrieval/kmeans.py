@@ -133,6 +133,14 @@ def _padded(sizes: np.ndarray, k: int, cap: int) -> np.ndarray:
                                  k), cap)
 
 
+def _stable_order(node: np.ndarray, count: int) -> np.ndarray:
+    """``np.argsort(node, kind="stable")`` of node ids in [-1, count): through 16-bit keys
+    while they fit, which numpy sorts by radix (300k points: 2 ms against 24 ms)."""
+    if count < (1 << 16) - 1:
+        return np.argsort((node + 1).astype(np.uint16), kind="stable")
+    return np.argsort(node, kind="stable")
+
+
 def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int, depth: int,
                         iterations: int, seed: int,
                         train_points_per_node: int = 4096,
@@ -165,7 +173,7 @@ def hierarchical_kmeans(points: np.ndarray, weights: np.ndarray, branching: int,
         node[alive & ~np.isin(node, split)] = -1
         if len(split) == 0:
             break
-        order = np.argsort(node, kind="stable")
+        order = _stable_order(node, count)
         order = order[node[order] >= 0]
         starts = np.searchsorted(node[order], split)
         sizes = np.bincount(node[order], minlength=count)[split]
