@@ -173,23 +173,20 @@ def test_the_server_started_with_the_run_imports_ahead_and_serves_one_off_calls(
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
 
 
-def test_the_workers_started_ahead_do_every_later_process_work():
-    """``warm_workers`` forks the shared pool's workers from the run's fork server before any
-    stage asks; ``process_map``, ``call_on_process`` and ``worker_processes`` then run on
-    those same processes (a fresh interpreter: the server and the pool are once per
-    process), and a caller that stops early leaves the pool working for the next."""
+def test_one_pool_of_workers_does_every_process_work_of_a_process():
+    """The first process work makes the shared pool; later ``process_map``s,
+    ``call_on_process`` and ``worker_processes`` blocks run on those same processes (a fresh
+    interpreter: the server and the pool are once per process), and a caller that stops
+    early leaves the pool working for the next."""
     script = (f"import os, sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
               "from test_parallel import _pid_and_loaded\n"
               "from cusfm_ros.pipeline import parallel\n"
-              "assert parallel.warm_workers(2) is None  # no fork server yet\n"
               "assert parallel.start_process_server(['colorsys'])\n"
-              "parallel.warm_workers(2).join()\n"
+              "first = {pid for _, (pid, _) in parallel.process_map(\n"
+              "    _pid_and_loaded, ['colorsys'] * 16, 2, chunk=1, minimum=2)}\n"
               "pool = parallel.shared_pool(2)\n"
               "ahead = {p.pid for p in pool._processes.values()}\n"
-              "assert len(ahead) == 2, ahead\n"
-              "pids = {pid for _, (pid, _) in parallel.process_map(\n"
-              "    _pid_and_loaded, ['colorsys'] * 16, 2, chunk=1, minimum=2)}\n"
-              "assert pids <= ahead, (pids, ahead)\n"
+              "assert len(ahead) == 2 and first <= ahead and os.getpid() not in ahead\n"
               "one = parallel.call_on_process(_pid_and_loaded, 'x', ['colorsys'], 2)\n"
               "assert one[0] in ahead, one\n"
               "with parallel.worker_processes(['colorsys'], 2) as start:\n"
@@ -198,6 +195,8 @@ def test_the_workers_started_ahead_do_every_later_process_work():
               "next(early); early.close()\n"
               "assert parallel.shared_pool(2) is pool\n"
               "assert {p.pid for p in pool._processes.values()} == ahead\n"
+              "assert {pid for _, (pid, _) in parallel.process_map(\n"
+              "    _pid_and_loaded, ['x'] * 8, 2, chunk=1, minimum=2)} <= ahead\n"
               "print('ok')\n")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=120)

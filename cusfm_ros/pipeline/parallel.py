@@ -177,11 +177,14 @@ _SHARED_LOCK = threading.Lock()
 
 
 def shared_pool(processes: int, function: Callable | None = None) -> ProcessPoolExecutor:
-    """This process's pool of worker processes, kept from one use to the next (every stage's
-    process work goes to the same workers, started once; ``warm_workers`` starts them
-    ahead): one of at least ``processes`` workers, made now when there is none, it is
-    smaller or a worker died. On the 16-core GPU machine a fresh pool gave the pose graph's
-    first loops back 0.4-0.5 s after it asked (street 200), where their work is ~20 ms."""
+    """This process's pool of worker processes, kept from one use to the next: every
+    stage's process work (the pose graph's loops and its gtsam solve, the export's files,
+    the report's figures) goes to the same workers, forked from the fork server once: one
+    of at least ``processes`` workers, made now when there is none, it is smaller or a
+    worker died. On the 16-core GPU machine a fresh pool gave the pose graph's first loops
+    back 0.4-0.5 s after it asked (street 200), where their work is ~20 ms. (Forking the
+    workers ahead on a background thread lost a Ctrl-C in the CLI's test and left a
+    worker's traceback when the run ended first: not done.)"""
     with _SHARED_LOCK:
         pool = _SHARED["pool"]
         if pool is None or _SHARED["size"] < processes or getattr(pool, "_broken", False):
@@ -192,24 +195,6 @@ def shared_pool(processes: int, function: Callable | None = None) -> ProcessPool
             _SHARED.update(pool=pool, size=processes)
         return pool
 
-
-def warm_workers(processes: int = 0) -> threading.Thread | None:
-    """Start ``shared_pool``'s workers now, on a background thread (each is forked from the
-    fork server once it has imported its modules), so that the first stage with process
-    work finds them running; None where one process is allowed or there is no fork server
-    (spawned workers would each import everything on the cores the run needs)."""
-    processes = thread_count(processes)
-    if processes == 1 or not _SERVER_MODULES:
-        return None
-
-    def start() -> None:
-        pool = shared_pool(processes)
-        for future in [pool.submit(os.getpid) for _ in range(processes)]:
-            future.result()
-
-    thread = threading.Thread(target=start, name="cusfm_workers_start", daemon=True)
-    thread.start()
-    return thread
 
 
 def map_on_processes(processes: int = 0, fewest: int = 4, chunk: int = 8, minimum: int = 64

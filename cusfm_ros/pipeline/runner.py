@@ -43,7 +43,7 @@ from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.io.run_lock import run_dir_lock
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.forked import can_fork_beside, run_forked_beside
-from cusfm_ros.pipeline.parallel import start_process_server, thread_count, warm_workers
+from cusfm_ros.pipeline.parallel import start_process_server, thread_count
 from cusfm_ros.pipeline.stage import Stage, StageContext
 
 logger = logging.getLogger(__name__)
@@ -193,14 +193,13 @@ class StageRunner:
     def _start_workers_server(self, steps: list[str]) -> None:
         """The fork server of the stages' worker processes, started now when a stage to run
         uses workers (and more than one core is allowed), so that it imports their modules
-        in the background, and the workers forked from it once it has (``warm_workers``)."""
+        in the background."""
         modules = [module for stage in self.stages if stage.name in steps
                    for module in stage.worker_modules]
         threads = getattr(self.options, "cpu_threads", 0)
         if modules and thread_count(threads) > 1:
             modules += self.worker_modules
-            if start_process_server(dict.fromkeys(modules)):
-                warm_workers(threads)
+            start_process_server(dict.fromkeys(modules))
 
     def solve(self, run_dir: str | Path, bag: str | Path | None = None,
               steps: list[str] | None = None, overwrite: bool = False,
