@@ -8,9 +8,11 @@ import sys
 import textwrap
 import threading
 
+import numpy as np
 import pytest
 
 from cusfm_ros.core import accelerator
+from cusfm_ros.core.accelerator import Arrays
 
 
 def test_no_cuda_start_without_an_nvidia_gpu(monkeypatch):
@@ -35,3 +37,21 @@ def test_cuda_started_on_a_thread_serves_torch():
                           timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["10.0", "0"]
+
+
+def test_a_read_only_array_goes_to_torch_without_a_warning_or_shared_memory():
+    """The stores' shared features are read-only: ``Arrays.put`` copies them without
+    torch's warning about tensors on read-only memory, and a CPU tensor does not share
+    (and so cannot change) them."""
+    import warnings
+
+    torch = pytest.importorskip("torch")
+    array = np.arange(6.0).reshape(2, 3)
+    array.flags.writeable = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tensor = Arrays(torch, "cpu").put(array)
+    tensor[0, 0] = 5.0
+    assert array[0, 0] == 0.0 and tensor[0, 0].item() == 5.0
+    writable = np.arange(3.0)
+    np.testing.assert_array_equal(Arrays(torch, "cpu").put(writable).numpy(), writable)

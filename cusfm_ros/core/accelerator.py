@@ -11,6 +11,7 @@ from __future__ import annotations
 import ctypes
 import sys
 import threading
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,9 +104,19 @@ class Arrays:
         return cls() if torch is None else cls(torch, "cuda")
 
     def put(self, array: np.ndarray):
+        """``array`` where the arithmetic runs: itself for numpy, else a torch copy there (a
+        read-only array, such as the stores' shared features, is copied first on the CPU,
+        where the tensor would share its memory, and goes to a GPU as it is: torch's
+        warning about tensors on read-only memory does not apply to a copy)."""
         if self.torch is None:
             return array
-        return self.torch.from_numpy(np.ascontiguousarray(array)).to(self.device)
+        array = np.ascontiguousarray(array)
+        if not array.flags.writeable:
+            array = array.copy() if self.device == "cpu" else array
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", "The given NumPy array is not writable")
+                return self.torch.from_numpy(array).to(self.device)
+        return self.torch.from_numpy(array).to(self.device)
 
     def get(self, array) -> np.ndarray:
         return array if self.torch is None else array.cpu().numpy()
