@@ -172,7 +172,7 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
         raise
 
 
-_SHARED: dict = {"pool": None, "size": 0}
+_SHARED: dict = {"pool": None, "size": 0, "pid": 0}
 _SHARED_LOCK = threading.Lock()
 
 
@@ -181,20 +181,20 @@ def shared_pool(processes: int, function: Callable | None = None) -> ProcessPool
     stage's process work (the pose graph's loops and its gtsam solve, the export's files,
     the report's figures) goes to the same workers, forked from the fork server once: one
     of at least ``processes`` workers, made now when there is none, it is smaller or a
-    worker died. On the 16-core GPU machine a fresh pool gave the pose graph's first loops
-    back 0.4-0.5 s after it asked (street 200), where their work is ~20 ms. (Forking the
-    workers ahead on a background thread lost a Ctrl-C in the CLI's test and left a
-    worker's traceback when the run ended first: not done.)"""
+    worker died (a forked child makes its own: the workers are its parent's). On the
+    16-core GPU machine a fresh pool gave the pose graph's first loops back 0.4-0.5 s after
+    it asked (street 200), where their work is ~20 ms. (Forking the workers ahead on a
+    background thread lost a Ctrl-C in the CLI's test and left a worker's traceback when
+    the run ended first: not done.)"""
     with _SHARED_LOCK:
-        pool = _SHARED["pool"]
+        pool = _SHARED["pool"] if _SHARED["pid"] == os.getpid() else None
         if pool is None or _SHARED["size"] < processes or getattr(pool, "_broken", False):
             if pool is not None:
                 pool.shutdown(wait=False)  # its work in flight ends; new work goes here
             pool = ProcessPoolExecutor(processes, mp_context=_process_context(function),
                                        initializer=_worker_process, initargs=(os.getpid(),))
-            _SHARED.update(pool=pool, size=processes)
+            _SHARED.update(pool=pool, size=processes, pid=os.getpid())
         return pool
-
 
 
 def map_on_processes(processes: int = 0, fewest: int = 4, chunk: int = 8, minimum: int = 64
