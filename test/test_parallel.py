@@ -152,25 +152,30 @@ def _pid_and_loaded(module: str) -> tuple[int, bool]:
     return os.getpid(), module in sys.modules
 
 
+def _passes_in_a_fresh_interpreter(body: str) -> None:
+    """Run ``body`` (lines of Python, ``_pid_and_loaded`` imported) in a new interpreter,
+    where the fork server and the shared pool are not yet made; it must end printing ok."""
+    script = (f"import os, sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+              "from test_parallel import _pid_and_loaded\n" + body + "print('ok')\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
+
+
 def test_the_server_started_with_the_run_imports_ahead_and_serves_one_off_calls():
     """``start_process_server`` imports its modules in the fork server while the caller goes
     on; ``call_on_process`` then runs on a worker that has them without importing them, and
     runs here when the server lacks one or one process is asked for (a fresh interpreter:
     the server is once per process)."""
-    script = (f"import os, sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
-              "from test_parallel import _pid_and_loaded\n"
-              "from cusfm_ros.pipeline.parallel import call_on_process, start_process_server\n"
-              "assert 'colorsys' not in sys.modules\n"
-              "assert start_process_server(['colorsys'])\n"
-              "pid, loaded = call_on_process(_pid_and_loaded, 'colorsys', ['colorsys'], 2)\n"
-              "assert pid != os.getpid() and loaded, (pid, loaded)\n"
-              "assert 'colorsys' not in sys.modules\n"
-              "assert call_on_process(_pid_and_loaded, 'x', ['wave'], 2)[0] == os.getpid()\n"
-              "assert call_on_process(_pid_and_loaded, 'x', ['colorsys'], 1)[0] == os.getpid()\n"
-              "print('ok')\n")
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                          timeout=120)
-    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
+    _passes_in_a_fresh_interpreter(
+        "from cusfm_ros.pipeline.parallel import call_on_process, start_process_server\n"
+        "assert 'colorsys' not in sys.modules\n"
+        "assert start_process_server(['colorsys'])\n"
+        "pid, loaded = call_on_process(_pid_and_loaded, 'colorsys', ['colorsys'], 2)\n"
+        "assert pid != os.getpid() and loaded, (pid, loaded)\n"
+        "assert 'colorsys' not in sys.modules\n"
+        "assert call_on_process(_pid_and_loaded, 'x', ['wave'], 2)[0] == os.getpid()\n"
+        "assert call_on_process(_pid_and_loaded, 'x', ['colorsys'], 1)[0] == os.getpid()\n")
 
 
 def test_one_pool_of_workers_does_every_process_work_of_a_process():
@@ -178,26 +183,21 @@ def test_one_pool_of_workers_does_every_process_work_of_a_process():
     ``call_on_process`` and ``worker_processes`` blocks run on those same processes (a fresh
     interpreter: the server and the pool are once per process), and a caller that stops
     early leaves the pool working for the next."""
-    script = (f"import os, sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
-              "from test_parallel import _pid_and_loaded\n"
-              "from cusfm_ros.pipeline import parallel\n"
-              "assert parallel.start_process_server(['colorsys'])\n"
-              "first = {pid for _, (pid, _) in parallel.process_map(\n"
-              "    _pid_and_loaded, ['colorsys'] * 16, 2, chunk=1, minimum=2)}\n"
-              "pool = parallel.shared_pool(2)\n"
-              "ahead = {p.pid for p in pool._processes.values()}\n"
-              "assert len(ahead) == 2 and first <= ahead and os.getpid() not in ahead\n"
-              "one = parallel.call_on_process(_pid_and_loaded, 'x', ['colorsys'], 2)\n"
-              "assert one[0] in ahead, one\n"
-              "with parallel.worker_processes(['colorsys'], 2) as start:\n"
-              "    assert start(_pid_and_loaded, 'x')()[0] in ahead\n"
-              "early = parallel.process_map(_pid_and_loaded, ['x'] * 40, 2, chunk=1, minimum=2)\n"
-              "next(early); early.close()\n"
-              "assert parallel.shared_pool(2) is pool\n"
-              "assert {p.pid for p in pool._processes.values()} == ahead\n"
-              "assert {pid for _, (pid, _) in parallel.process_map(\n"
-              "    _pid_and_loaded, ['x'] * 8, 2, chunk=1, minimum=2)} <= ahead\n"
-              "print('ok')\n")
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                          timeout=120)
-    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
+    _passes_in_a_fresh_interpreter(
+        "from cusfm_ros.pipeline import parallel\n"
+        "assert parallel.start_process_server(['colorsys'])\n"
+        "first = {pid for _, (pid, _) in parallel.process_map(\n"
+        "    _pid_and_loaded, ['colorsys'] * 16, 2, chunk=1, minimum=2)}\n"
+        "pool = parallel.shared_pool(2)\n"
+        "workers = {p.pid for p in pool._processes.values()}\n"
+        "assert len(workers) == 2 and first <= workers and os.getpid() not in workers\n"
+        "one = parallel.call_on_process(_pid_and_loaded, 'x', ['colorsys'], 2)\n"
+        "assert one[0] in workers, one\n"
+        "with parallel.worker_processes(['colorsys'], 2) as start:\n"
+        "    assert start(_pid_and_loaded, 'x')()[0] in workers\n"
+        "early = parallel.process_map(_pid_and_loaded, ['x'] * 40, 2, chunk=1, minimum=2)\n"
+        "next(early); early.close()\n"
+        "assert parallel.shared_pool(2) is pool\n"
+        "assert {p.pid for p in pool._processes.values()} == workers\n"
+        "assert {pid for _, (pid, _) in parallel.process_map(\n"
+        "    _pid_and_loaded, ['x'] * 8, 2, chunk=1, minimum=2)} <= workers\n")
