@@ -196,8 +196,7 @@ class StageRunner:
         in the background."""
         modules = [module for stage in self.stages if stage.name in steps
                    for module in stage.worker_modules]
-        threads = getattr(self.options, "cpu_threads", 0)
-        if modules and thread_count(threads) > 1:
+        if modules and thread_count(getattr(self.options, "cpu_threads", 0)) > 1:
             modules += self.worker_modules
             start_process_server(dict.fromkeys(modules))
 
