@@ -55,3 +55,4 @@ def test_a_read_only_array_goes_to_torch_without_a_warning_or_shared_memory():
     assert array[0, 0] == 0.0 and tensor[0, 0].item() == 5.0
     writable = np.arange(3.0)
     np.testing.assert_array_equal(Arrays(torch, "cpu").put(writable).numpy(), writable)
+    assert Arrays(torch, "cpu").put(tensor) is tensor  # a tensor there already stays

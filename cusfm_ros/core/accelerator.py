@@ -107,9 +107,12 @@ class Arrays:
         """``array`` where the arithmetic runs: itself for numpy, else a torch copy there (a
         read-only array, such as the stores' shared features, is copied first on the CPU,
         where the tensor would share its memory, and goes to a GPU as it is: torch's
-        warning about tensors on read-only memory does not apply to a copy)."""
+        warning about tensors on read-only memory does not apply to a copy); a torch tensor
+        is moved there (not copied when it is there already)."""
         if self.torch is None:
             return array
+        if isinstance(array, self.torch.Tensor):
+            return array.to(self.device)
         array = np.ascontiguousarray(array)
         if not array.flags.writeable:
             array = array.copy() if self.device == "cpu" else array

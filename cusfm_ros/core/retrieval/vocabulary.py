@@ -203,7 +203,7 @@ class VocabularyTree:
         on a GPU), on numpy or on the GPU (``use_device``)."""
         points = np.asarray(descriptors, dtype=np.float32)
         self._check_dim(points)
-        return self._quantized(points, self.arrays.put, chunk)
+        return self._quantized(points, chunk)
 
     def quantize_there(self, descriptors, chunk: int | None = None) -> np.ndarray:
         """``quantize`` of descriptors already where this tree quantizes (a torch tensor on
@@ -211,9 +211,9 @@ class VocabularyTree:
         if descriptors.ndim != 2 or (len(descriptors) and descriptors.shape[1] != self.dim):
             raise VocabularyError(f"descriptors of shape {tuple(descriptors.shape)}; the "
                                   f"vocabulary was built for dimension {self.dim}")
-        return self._quantized(descriptors, lambda part: part, chunk)
+        return self._quantized(descriptors, chunk)
 
-    def _quantized(self, points, there, chunk: int | None) -> np.ndarray:
+    def _quantized(self, points, chunk: int | None) -> np.ndarray:
         if chunk is None:
             chunk = 4096 if self.arrays.torch is None else 32768
         if self._there is None:
@@ -223,7 +223,7 @@ class VocabularyTree:
         leaves = np.empty(len(points), np.int64)
         for start in range(0, len(points), chunk):
             leaves[start:start + chunk] = self.arrays.get(
-                _descend(*self._there, there(points[start:start + chunk])))
+                _descend(*self._there, self.arrays.put(points[start:start + chunk])))
         return self.words[leaves]
 
     # ----------------------------------------------------------------------- (de)serialize
