@@ -201,3 +201,64 @@ def test_one_pool_of_workers_does_every_process_work_of_a_process():
         "assert {p.pid for p in pool._processes.values()} == workers\n"
         "assert {pid for _, (pid, _) in parallel.process_map(\n"
         "    _pid_and_loaded, ['x'] * 8, 2, chunk=1, minimum=2)} <= workers\n")
+
+
+RUNNER_STAGES = """
+import json
+from dataclasses import dataclass
+from cusfm_ros.pipeline import parallel
+from cusfm_ros.pipeline.runner import StageRunner
+from cusfm_ros.pipeline.stage import Stage
+
+def workers():
+    pool = parallel._SHARED["pool"]
+    return set() if pool is None else {p.pid for p in pool._processes.values()}
+
+@dataclass(frozen=True)
+class Options:
+    device: str = "cpu"
+    cpu_threads: int = THREADS
+
+class First(Stage):
+    name, outputs = "first", ("poses",)
+    def run(self, context):
+        seen["first"] = workers()
+        context.run.poses.write_text("x")
+        return {}
+
+class Second(Stage):
+    name, inputs, outputs = "second", ("poses",), ("pairs",)
+    def run(self, context):
+        seen["second"] = workers()
+        context.run.pairs.parent.mkdir(exist_ok=True)
+        context.run.pairs.write_text("x")
+        return {}
+
+class Third(Stage):
+    name, inputs, outputs = "third", ("pairs",), ("map_dir",)
+    worker_modules = ("colorsys",)
+    def run(self, context):
+        seen["third"] = {pid for _, (pid, _) in parallel.process_map(
+            _pid_and_loaded, ["colorsys"] * 8, context.options.cpu_threads, chunk=1,
+            minimum=2)}
+        context.run.map_dir.mkdir()
+        return {}
+
+seen = {}
+StageRunner((First(), Second(), Third()), Options()).solve(RUN)
+"""
+
+
+def test_the_runner_starts_the_workers_a_stage_ahead_of_their_first_use(tmp_path):
+    """With more than one core the workers are forked when the stage before the first that
+    uses them starts (they are up when it asks), and that stage runs on them; with one core
+    none is started."""
+    _passes_in_a_fresh_interpreter(
+        RUNNER_STAGES.replace("THREADS", "2").replace("RUN", repr(str(tmp_path / "a")))
+        + "assert seen['first'] == set(), seen\n"
+        "assert len(seen['second']) == 2 and os.getpid() not in seen['second'], seen\n"
+        "assert seen['third'] <= seen['second'], seen\n"
+        "assert parallel._SHARED['pool'] is parallel._SHARED['started']\n")
+    _passes_in_a_fresh_interpreter(
+        RUNNER_STAGES.replace("THREADS", "1").replace("RUN", repr(str(tmp_path / "b")))
+        + "assert seen == {'first': set(), 'second': set(), 'third': {os.getpid()}}, seen\n")

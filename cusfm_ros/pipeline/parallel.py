@@ -197,6 +197,27 @@ def shared_pool(processes: int, function: Callable | None = None) -> ProcessPool
         return pool
 
 
+def start_workers(processes: int) -> list[Future]:
+    """``shared_pool``'s ``processes`` workers forked now, from the main thread, rather than
+    at its first use: one trivial task each, not waited for (the caller waits for them, with
+    a bound, before it ends, so that no worker is still starting when the process exits).
+    The runner calls it a stage ahead of the first stage that uses workers: on the 16-core
+    GPU machine the pose graph's first loops came back 0.4-0.5 s after it first asked a
+    fresh pool (street 200), and forking a worker costs this thread 6-11 ms (2-core
+    machine). Once per pool; [] where the pool would not come from a started fork server
+    (spawned workers import everything themselves: better only when needed) or one process
+    is allowed."""
+    processes = thread_count(processes)
+    if processes == 1 or not _SERVER_MODULES:
+        return []
+    pool = shared_pool(processes)
+    with _SHARED_LOCK:
+        if _SHARED.get("started") is pool:
+            return []
+        _SHARED["started"] = pool
+    return [pool.submit(os.getpid) for _ in range(processes)]
+
+
 def map_on_processes(processes: int = 0, fewest: int = 4, chunk: int = 8, minimum: int = 64
                      ) -> Callable[[Callable, Iterable], Iterable]:
     """``map(function, items)`` on ``processes`` worker processes (``process_map``'s results

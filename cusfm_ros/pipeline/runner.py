@@ -30,6 +30,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import wait
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +44,7 @@ from cusfm_ros.io.run_dir import RunDir
 from cusfm_ros.io.run_lock import run_dir_lock
 from cusfm_ros.pipeline.config import options_as_dict
 from cusfm_ros.pipeline.forked import can_fork_beside, run_forked_beside
-from cusfm_ros.pipeline.parallel import start_process_server, thread_count
+from cusfm_ros.pipeline.parallel import start_process_server, start_workers, thread_count
 from cusfm_ros.pipeline.stage import Stage, StageContext
 
 logger = logging.getLogger(__name__)
@@ -171,6 +172,7 @@ class StageRunner:
         self.stages = stages
         self.options = options
         self.worker_modules = worker_modules
+        self._ahead: list = []  # the workers started ahead of their first stage
         self._timeline: dict | None = None  # the current run's, in seconds of process age
         self.producer = {artifact: stage.name for stage in stages
                          for artifact in stage.outputs + stage.optional_outputs
@@ -241,6 +243,7 @@ class StageRunner:
                     current = stage.name
                     logger.info("=== stage %s (%d/%d) ===", stage.name, index + 1,
                                 len(steps))
+                    self._start_workers_ahead(chosen, index, beside is not None)
                     # (the first stage may run on a forked child: no thread beside it then)
                     partner = (chosen[index + 1] if (index > 0 or beside is None)
                                and index + 1 < len(chosen)
@@ -260,6 +263,7 @@ class StageRunner:
                         raise failed
                     index += 2
             except BaseException as exc:
+                self._settle_workers()
                 self._drop_orphans(run)
                 digests.save()
                 error = str(exc) or type(exc).__name__
@@ -268,6 +272,7 @@ class StageRunner:
                 self._report(run, bag, entries, time.perf_counter() - started, steps,
                              {"status": "failed", "failed_stage": current, "error": error})
                 raise
+            self._settle_workers()
             digests.save()
             report = self._report(run, bag, entries, time.perf_counter() - started, steps,
                                   {"status": "complete"})
@@ -335,6 +340,23 @@ class StageRunner:
         entry = self._run_stage(stage, run, bag, digests, overwrite, beside, measure)
         self._timeline["stages"][stage.name] = [started, _process_age_s()]
         return entry
+
+    def _start_workers_ahead(self, chosen: list[Stage], index: int, forked_first: bool
+                             ) -> None:
+        """The worker processes forked when the stage before the first that uses them
+        starts (``parallel.start_workers``), so that they are up when it asks; never
+        while the first stage runs on a forked child beside torch's import (a worker start
+        there lost a Ctrl-C in the CLI's test)."""
+        if (index + 1 < len(chosen) and chosen[index + 1].worker_modules
+                and not (index == 0 and forked_first)):
+            self._ahead += start_workers(getattr(self.options, "cpu_threads", 0))
+
+    def _settle_workers(self) -> None:
+        """Wait (5 s at most) for the workers started ahead to be up: a process that ends
+        while one is still starting leaves it a traceback to print."""
+        if self._ahead:
+            wait(self._ahead, timeout=5)
+            self._ahead = []
 
     def _device_start(self) -> None:
         """What runs beside the first stage: torch's import (which ``check_device`` does for
