@@ -262,3 +262,29 @@ def test_the_runner_starts_the_workers_a_stage_ahead_of_their_first_use(tmp_path
     _passes_in_a_fresh_interpreter(
         RUNNER_STAGES.replace("THREADS", "1").replace("RUN", repr(str(tmp_path / "b")))
         + "assert seen == {'first': set(), 'second': set(), 'third': {os.getpid()}}, seen\n")
+
+
+def test_workers_find_the_main_script_loaded_by_their_server(tmp_path):
+    """The fork server loads the parent's main script once (``server_main``; Python < 3.13
+    never did, and each worker ran it again, importing the whole CLI): a script that notes
+    each run of its top level is run by itself and by the server, not by its four workers."""
+    runs = tmp_path / "runs.txt"
+    script = tmp_path / "main_script.py"
+    script.write_text(
+        "import os, sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        f"with open({str(runs)!r}, 'a') as handle:\n"
+        "    handle.write(__name__ + '\\n')\n"
+        "from test_parallel import _pid_and_loaded\n"
+        "from cusfm_ros.pipeline import parallel\n"
+        "if __name__ == '__main__':\n"
+        "    assert parallel.start_process_server(['colorsys'])\n"
+        "    started = parallel.start_workers(4)\n"
+        "    pids = {future.result() for future in started}\n"
+        "    assert len(started) == 4 and os.getpid() not in pids, pids\n"
+        "    assert len(parallel.shared_pool(4)._processes) == 4\n"
+        "    print('ok')\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
+    assert runs.read_text().split() == ["__main__", "__mp_main__"]

@@ -199,14 +199,13 @@ def shared_pool(processes: int, function: Callable | None = None) -> ProcessPool
 
 def start_workers(processes: int) -> list[Future]:
     """``shared_pool``'s ``processes`` workers forked now, from the main thread, rather than
-    at its first use: one trivial task each, not waited for (the caller waits for them, with
-    a bound, before it ends, so that no worker is still starting when the process exits).
-    The runner calls it a stage ahead of the first stage that uses workers: on the 16-core
-    GPU machine the pose graph's first loops came back 0.4-0.5 s after it first asked a
-    fresh pool (street 200), and forking a worker costs this thread 6-11 ms (2-core
-    machine). Once per pool; [] where the pool would not come from a started fork server
-    (spawned workers import everything themselves: better only when needed) or one process
-    is allowed."""
+    at its first use: one short task each (``START_HOLD_S``), not waited for (the caller
+    waits for them, with a bound, before it ends, so that no worker is still starting when
+    the process exits). The runner calls it a stage ahead of the first stage that uses
+    workers: on the 16-core GPU machine the pose graph's first loops came back 0.4-0.5 s
+    after it first asked a fresh pool (street 200). Once per pool; [] where the pool would
+    not come from a started fork server (spawned workers import everything themselves:
+    better only when needed) or one process is allowed."""
     processes = thread_count(processes)
     if processes == 1 or not _SERVER_MODULES:
         return []
@@ -215,7 +214,19 @@ def start_workers(processes: int) -> list[Future]:
         if _SHARED.get("started") is pool:
             return []
         _SHARED["started"] = pool
-    return [pool.submit(os.getpid) for _ in range(processes)]
+    return [pool.submit(_held_pid) for _ in range(processes)]
+
+
+START_HOLD_S = 0.25
+"""How long ``start_workers``' task holds its worker: the pool forks a worker for a task
+only while none is idle, and a worker forked from a loaded server is up in ~20-60 ms (2-core
+machine), so a task that ended at once let later tasks go to it and fewer workers were
+started; the 16 forks take this thread ~0.1 s on the GPU machine."""
+
+
+def _held_pid() -> int:
+    time.sleep(START_HOLD_S)
+    return os.getpid()
 
 
 def map_on_processes(processes: int = 0, fewest: int = 4, chunk: int = 8, minimum: int = 64
@@ -251,11 +262,27 @@ def start_process_server(modules: Iterable[str] = ()) -> bool:
     if not _SERVER_MODULES:
         from multiprocessing import forkserver
 
-        preload = ["__main__", *modules]
+        preload = _server_preload(modules)
         multiprocessing.get_context("forkserver").set_forkserver_preload(preload)
         forkserver.ensure_running()
         _SERVER_MODULES.update(preload)
     return True
+
+
+def _server_preload(modules: Iterable[str]) -> list[str]:
+    """The fork server's preload: ``server_main`` first, which loads this process's main
+    module there (told through the environment the server inherits), then ``modules``."""
+    from multiprocessing import spawn
+
+    from cusfm_ros.pipeline.server_main import MAIN_VARIABLE, main_reference
+
+    reference = main_reference(spawn.get_preparation_data("workers"))
+    if reference is None:
+        os.environ.pop(MAIN_VARIABLE, None)
+    else:
+        os.environ[MAIN_VARIABLE] = reference
+    # threadpoolctl: every worker's initializer imports it
+    return ["__main__", "cusfm_ros.pipeline.server_main", "threadpoolctl", *modules]
 
 
 def call_on_process(function: Callable[[Item], Result], argument: Item,
@@ -325,7 +352,7 @@ def _process_context(function: Callable | None) -> multiprocessing.context.BaseC
     context = multiprocessing.get_context("forkserver")
     if function is not None:
         # no effect once the server runs (it keeps what it imported at its start)
-        context.set_forkserver_preload(["__main__", function.__module__])
+        context.set_forkserver_preload(_server_preload([function.__module__]))
     return context
 
 
