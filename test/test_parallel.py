@@ -204,7 +204,6 @@ def test_one_pool_of_workers_does_every_process_work_of_a_process():
 
 
 RUNNER_STAGES = """
-import json
 from dataclasses import dataclass
 from cusfm_ros.pipeline import parallel
 from cusfm_ros.pipeline.runner import StageRunner

@@ -114,12 +114,13 @@ class Arrays:
         if isinstance(array, self.torch.Tensor):
             return array.to(self.device)
         array = np.ascontiguousarray(array)
-        if not array.flags.writeable:
-            array = array.copy() if self.device == "cpu" else array
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", "The given NumPy array is not writable")
-                return self.torch.from_numpy(array).to(self.device)
-        return self.torch.from_numpy(array).to(self.device)
+        if array.flags.writeable:
+            return self.torch.from_numpy(array).to(self.device)
+        if self.device == "cpu":
+            return self.torch.from_numpy(array.copy())
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "The given NumPy array is not writable")
+            return self.torch.from_numpy(array).to(self.device)
 
     def get(self, array) -> np.ndarray:
         return array if self.torch is None else array.cpu().numpy()

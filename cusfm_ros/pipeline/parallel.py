@@ -172,7 +172,9 @@ def process_map(function: Callable[[Item], Result], items: Iterable[Item], proce
         raise
 
 
-_SHARED: dict = {"pool": None, "size": 0, "pid": 0}
+_SHARED: dict = {"pool": None, "size": 0, "pid": 0, "started": None}
+"""The shared pool, its size, the process that made it, and the pool ``start_workers``
+started (once per pool)."""
 _SHARED_LOCK = threading.Lock()
 
 
@@ -211,7 +213,7 @@ def start_workers(processes: int) -> list[Future]:
         return []
     pool = shared_pool(processes)
     with _SHARED_LOCK:
-        if _SHARED.get("started") is pool:
+        if _SHARED["started"] is pool:
             return []
         _SHARED["started"] = pool
     return [pool.submit(_held_pid) for _ in range(processes)]
